@@ -1,0 +1,88 @@
+"""The triangle mesh the solver works on: geometry and per-element bookkeeping, no algorithms.
+
+Elements are triangles. Vertices are shared only inside one *surface* (a planar face of a
+room or box, a quad, or a smooth patch of an imported mesh), so averaging element values to
+vertices never blends across a crease or between objects.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+
+@dataclass
+class Mesh:
+    """A triangle mesh with a surface and a material per triangle.
+
+    Attributes:
+        vertices: (V, 3) float64 positions.
+        triangles: (T, 3) int64 vertex indices, counter-clockwise seen from the front
+            (the normal is ``(v1 - v0) x (v2 - v0)``).
+        surface: (T,) int64 surface index of each triangle.
+        material: (T,) int64 index into the scene's material table.
+        surface_names: one readable name per surface, e.g. ``"objects[0].floor"``.
+    """
+
+    vertices: torch.Tensor
+    triangles: torch.Tensor
+    surface: torch.Tensor
+    material: torch.Tensor
+    surface_names: list[str] = field(default_factory=list)
+
+    def __post_init__(self):
+        self.vertices = torch.as_tensor(self.vertices, dtype=torch.float64).reshape(-1, 3)
+        self.triangles = torch.as_tensor(self.triangles, dtype=torch.int64).reshape(-1, 3)
+        self.surface = torch.as_tensor(self.surface, dtype=torch.int64).reshape(-1)
+        self.material = torch.as_tensor(self.material, dtype=torch.int64).reshape(-1)
+        n = len(self.triangles)
+        if len(self.surface) != n or len(self.material) != n:
+            raise ValueError("surface and material need one entry per triangle")
+
+    @property
+    def num_elements(self) -> int:
+        return len(self.triangles)
+
+    @property
+    def corners(self) -> torch.Tensor:
+        """(T, 3, 3) the three vertex positions of every triangle."""
+        return self.vertices[self.triangles]
+
+    @property
+    def centroids(self) -> torch.Tensor:
+        """(T, 3)"""
+        return self.corners.mean(dim=1)
+
+    @property
+    def _cross(self) -> torch.Tensor:
+        c = self.corners
+        return torch.linalg.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+
+    @property
+    def areas(self) -> torch.Tensor:
+        """(T,)"""
+        return 0.5 * self._cross.norm(dim=1)
+
+    @property
+    def normals(self) -> torch.Tensor:
+        """(T, 3) unit normals."""
+        x = self._cross
+        return x / x.norm(dim=1, keepdim=True)
+
+    def bounding_box(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.vertices.min(dim=0).values, self.vertices.max(dim=0).values
+
+    @staticmethod
+    def concatenate(parts: list["Mesh"]) -> "Mesh":
+        """Join meshes; surface indices and names are renumbered, materials kept."""
+        vertices, triangles, surface, material, names = [], [], [], [], []
+        v_off = s_off = 0
+        for p in parts:
+            vertices.append(p.vertices)
+            triangles.append(p.triangles + v_off)
+            surface.append(p.surface + s_off)
+            material.append(p.material)
+            names.extend(p.surface_names or [f"surface{s_off + i}" for i in range(int(p.surface.max()) + 1 if len(p.surface) else 0)])
+            v_off += len(p.vertices)
+            s_off += int(p.surface.max()) + 1 if len(p.surface) else 0
+        return Mesh(torch.cat(vertices), torch.cat(triangles), torch.cat(surface), torch.cat(material), names)

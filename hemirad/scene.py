@@ -1,0 +1,122 @@
+"""What a scene is: materials, objects, camera and solver options (data only).
+
+Reading these from a YAML file is ``loader.py``'s job; turning objects into triangles is
+``meshing.py``'s. Lengths are in scene units (any unit, used consistently); radiosity and
+emission are exitances (power per area, e.g. W/m^2); colours are linear RGB.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+
+@dataclass
+class Material:
+    name: str
+    reflectance: tuple[float, float, float]  # diffuse, each in [0, 1)
+    emission: tuple[float, float, float] = (0.0, 0.0, 0.0)  # exitance, >= 0
+
+
+@dataclass
+class FaceOverride:
+    """Per-face settings of a room; ``None`` means "as the room"."""
+
+    material: str | None = None
+    element_size: float | None = None
+
+
+@dataclass
+class Room:
+    """An axis-aligned cuboid seen from inside: six faces with inward normals.
+
+    Faces are named ``floor`` (y = min), ``ceiling`` (y = max), ``x_min``, ``x_max``,
+    ``z_min`` and ``z_max``.
+    """
+
+    min: tuple[float, float, float]
+    max: tuple[float, float, float]
+    material: str
+    element_size: float
+    faces: dict[str, FaceOverride] = field(default_factory=dict)
+    name: str = "room"
+
+    FACE_NAMES = ("floor", "ceiling", "x_min", "x_max", "z_min", "z_max")
+
+
+@dataclass
+class Box:
+    """An axis-aligned box seen from outside: six faces with outward normals."""
+
+    min: tuple[float, float, float]
+    max: tuple[float, float, float]
+    material: str
+    element_size: float
+    name: str = "box"
+
+
+@dataclass
+class Quad:
+    """A one-sided planar quadrilateral; the front is where its corners run counter-clockwise."""
+
+    corners: tuple[tuple[float, float, float], ...]  # four points
+    material: str
+    element_size: float
+    name: str = "quad"
+
+
+@dataclass
+class MeshFile:
+    """A triangle mesh read by trimesh (OBJ, PLY, GLB, ...), placed by a 4x4 transform."""
+
+    path: Path
+    material: str
+    element_size: float
+    transform: tuple[tuple[float, ...], ...] = (
+        (1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    crease_angle: float = 30.0  # degrees: vertices are not shared across sharper edges
+    name: str = "mesh"
+
+
+SceneObject = Room | Box | Quad | MeshFile
+
+
+@dataclass
+class Camera:
+    position: tuple[float, float, float]
+    look_at: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov: float = 40.0  # vertical field of view, degrees
+    width: int = 512
+    height: int = 512
+    exposure: float | None = None  # display value per unit radiosity; None: automatic
+    supersample: int = 3  # antialiasing: rendered at this factor and box-filtered
+
+
+@dataclass
+class SolverOptions:
+    max_shots: int = 500
+    unshot_fraction: float = 1e-3  # stop when unshot power / emitted power falls below
+    resolution: int = 128  # hemicube top face is resolution x resolution pixels
+    ambient: bool = True  # add Cohen et al.'s ambient term to the displayed radiosity
+
+
+@dataclass
+class Scene:
+    materials: list[Material]
+    objects: list[SceneObject]
+    camera: Camera
+    solver: SolverOptions = field(default_factory=SolverOptions)
+    source: Path | None = None  # the file it was read from
+
+    def material_index(self, name: str) -> int:
+        return [m.name for m in self.materials].index(name)
+
+    def reflectance_table(self) -> torch.Tensor:
+        """(M, 3) float64"""
+        return torch.tensor([m.reflectance for m in self.materials], dtype=torch.float64)
+
+    def emission_table(self) -> torch.Tensor:
+        """(M, 3) float64"""
+        return torch.tensor([m.emission for m in self.materials], dtype=torch.float64)
