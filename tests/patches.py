@@ -1,0 +1,31 @@
+"""Small test geometries built from quads: each quad is its own surface."""
+import numpy as np
+import torch
+
+from hemirad.mesh import Mesh
+from hemirad.meshing import grid_quad
+
+
+def quad(origin, u, v):
+    """(4, 3) corners of the parallelogram origin + [0,1]u + [0,1]v; front side along u x v."""
+    o, u, v = (np.asarray(x, dtype=np.float64) for x in (origin, u, v))
+    return torch.tensor(np.stack([o, o + u, o + u + v, o + v]))
+
+
+def quads_mesh(quads, element_sizes):
+    """One Mesh from several quads, meshed at the given element sizes; material 0 for all."""
+    parts = []
+    for corners, size in zip(quads, element_sizes):
+        vertices, triangles = grid_quad(corners, size)
+        n = len(triangles)
+        parts.append(Mesh(vertices, triangles, torch.zeros(n), torch.zeros(n), ["quad"]))
+    return Mesh.concatenate(parts)
+
+
+def closed_box(size=1.0, element_size=1.0):
+    """The inside of a cube [0, size]^3: six quads with inward normals."""
+    X, Y, Z = np.eye(3) * size
+    o, s = np.zeros(3), np.full(3, size)
+    faces = [quad(o, Y, X), quad(o, X, Z), quad(o, Z, Y),
+             quad(s, -X, -Y), quad(s, -Z, -X), quad(s, -Y, -Z)]
+    return quads_mesh(faces, [element_size] * 6)

@@ -1,0 +1,127 @@
+"""Hemicube form factors against their definition and against closed forms."""
+import numpy as np
+import pytest
+import torch
+
+from hemirad.analytic import parallel_rectangles, perpendicular_rectangles, point_to_polygon
+from hemirad.formfactor import HemicubeFormFactors, delta_form_factors, raw_delta_form_factors
+from hemirad.mesh import Mesh
+
+from patches import closed_box, quad, quads_mesh
+
+X, Y, Z = np.eye(3)
+
+
+def test_analytic_formulas_reproduce_the_catalog():
+    # Independent numbers from Howell's catalog guard the references the hemicube is held to.
+    for (a, b, c), F in [((1, 1, 1), 0.19982), ((2, 1, 1), 0.28588), ((1, 1, 2), 0.06859), ((2, 2, 1), 0.41525)]:
+        assert float(parallel_rectangles(a, b, c)) == pytest.approx(F, abs=1e-5)
+    for (h, w, l), F in [((1, 1, 1), 0.20004), ((1, 2, 1), 0.11643), ((2, 1, 1), 0.23285), ((1, 1, 2), 0.24064)]:
+        assert float(perpendicular_rectangles(h, w, l)) == pytest.approx(F, abs=1e-5)
+    for (a, b, c), F in [((1, 1, 1), 0.13853), ((2, 1, 1), 0.16738), ((1, 1, 2), 0.05986), ((3, 2, 1), 0.21758)]:
+        corner = torch.tensor([[0, 0, c], [a, 0, c], [a, b, c], [0, b, c]], dtype=torch.float64)
+        F_lambert = point_to_polygon(torch.zeros(3, dtype=torch.float64), torch.tensor([0, 0, 1.0], dtype=torch.float64), corner)
+        assert float(F_lambert) == pytest.approx(F, abs=1e-5)
+
+
+@pytest.mark.parametrize("resolution", [8, 32, 128, 256])
+def test_delta_form_factors_sum_to_one(resolution):
+    assert float(delta_form_factors(resolution).sum()) == pytest.approx(1.0, abs=1e-12)
+    assert (delta_form_factors(resolution) > 0).all()
+
+
+def test_raw_delta_form_factors_converge_to_one_like_the_midpoint_rule():
+    errors = [abs(float(raw_delta_form_factors(R).sum()) - 1) for R in (8, 32, 128)]
+    assert errors[0] < 1e-2
+    # O(1/R^2): each 4x in resolution cuts the error about 16x.
+    assert errors[1] < errors[0] / 12 and errors[2] < errors[1] / 12
+
+
+def test_closed_box_form_factors_sum_to_one():
+    mesh = closed_box(element_size=0.25)
+    ff = HemicubeFormFactors(mesh.corners, 64)
+    try:
+        for shooter in (0, 17, mesh.num_elements - 1):
+            F = ff.from_element(shooter)
+            assert float(F.sum()) == pytest.approx(1.0, rel=1e-2)
+            assert float(F[shooter]) == 0.0
+    finally:
+        ff.close()
+
+
+def area_to_area(mesh, source_count, resolution):
+    """F from the first ``source_count`` elements (one patch) to the rest, area-weighted."""
+    ff = HemicubeFormFactors(mesh.corners, resolution)
+    try:
+        areas = mesh.areas
+        rows = torch.stack([ff.from_element(i)[source_count:].sum() for i in range(source_count)])
+        return float((areas[:source_count] * rows).sum() / areas[:source_count].sum())
+    finally:
+        ff.close()
+
+
+def two_patches(source, target, source_element):
+    """A mesh of a finely meshed source patch followed by a one-element-per-half target."""
+    mesh = quads_mesh([source, target], [source_element, 10.0])
+    return mesh, int((mesh.surface == 0).sum())
+
+
+HOWELL_CASES = {
+    # Directly opposed squares / 2x1 rectangles at distance 1; the target faces the source.
+    "opposed 1x1 at 1": (quad(0 * X, X, Y), quad(Z, Y, X), parallel_rectangles(1, 1, 1)),
+    "opposed 2x1 at 1": (quad(0 * X, 2 * X, Y), quad(Z, Y, 2 * X), parallel_rectangles(2, 1, 1)),
+    # Perpendicular, sharing the unit edge along x: from the w-wide one (in z = 0) to the h-high one (in y = 0).
+    "perpendicular h=1 w=1": (quad(0 * X, X, Y), quad(0 * X, Z, X), perpendicular_rectangles(1, 1, 1)),
+    "perpendicular h=1 w=2": (quad(0 * X, X, 2 * Y), quad(0 * X, Z, X), perpendicular_rectangles(1, 2, 1)),
+}
+
+
+@pytest.mark.parametrize("case", list(HOWELL_CASES))
+def test_hemicube_matches_howell_at_resolution_256(case):
+    source, target, reference = HOWELL_CASES[case]
+    mesh, n = two_patches(source, target, source_element=1 / 8)
+    assert (mesh.normals[:n] @ torch.tensor(Z)).min() > 0.999  # the source faces +z
+    F = area_to_area(mesh, n, 256)
+    assert F == pytest.approx(float(reference), rel=0.02)
+
+
+def test_hemicube_converges_to_lambert_as_resolution_grows():
+    """Point-to-rectangle factors at jittered points: the error shrinks about like 1/R."""
+    rectangle = np.array([[-0.5, -0.3, 1], [0.7, -0.3, 1], [0.7, 0.6, 1], [-0.5, 0.6, 1.0]])
+    rng = np.random.default_rng(1)
+    points = [np.array([*rng.uniform(-0.3, 0.3, 2), 0.0]) for _ in range(8)]
+    mean_error = {}
+    for R in (16, 64, 256):
+        errors = []
+        for p in points:
+            h = 1e-3  # a tiny source triangle stands for the differential area at p
+            source = np.array([p + [h, 0, 0], p + [-h / 2, h, 0], p + [-h / 2, -h, 0]])
+            vertices = np.concatenate([source, rectangle[::-1]])  # the rectangle faces down
+            mesh = Mesh(vertices, [[0, 1, 2], [3, 4, 5], [3, 5, 6]], [0, 1, 1], [0, 0, 0])
+            ff = HemicubeFormFactors(mesh.corners, R)
+            F = float(ff.from_element(0)[1:].sum())
+            ff.close()
+            reference = float(point_to_polygon(mesh.centroids[0], torch.tensor(Z), torch.tensor(rectangle)))
+            errors.append(abs(F / reference - 1))
+        mean_error[R] = np.mean(errors)
+    assert mean_error[256] < 0.005
+    assert mean_error[16] > 2 * mean_error[64] > 4 * mean_error[256]
+
+
+def test_reciprocity_between_two_patches():
+    # Two unequal, tilted patches facing each other: A_i F_ij = A_j F_ji.
+    a = quad([0, 0, 0], [1.0, 0, 0], [0, 0.8, 0])
+    b = quad([0.2, -0.1, 0.9], [0, 1.2, 0.1], [0.7, 0, 0.3])
+    mesh = quads_mesh([a, b], [0.1, 0.1])
+    n_a = int((mesh.surface == 0).sum())
+    area_a, area_b = float(mesh.areas[:n_a].sum()), float(mesh.areas[n_a:].sum())
+    ff = HemicubeFormFactors(mesh.corners, 128)
+    try:
+        F = torch.stack([ff.from_element(i) for i in range(mesh.num_elements)])
+    finally:
+        ff.close()
+    areas = mesh.areas
+    F_ab = float((areas[:n_a, None] * F[:n_a, n_a:]).sum()) / area_a
+    F_ba = float((areas[n_a:, None] * F[n_a:, :n_a]).sum()) / area_b
+    assert F_ab > 0.1 and F_ba > 0.1
+    assert area_a * F_ab == pytest.approx(area_b * F_ba, rel=0.02)
