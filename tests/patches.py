@@ -26,6 +26,6 @@ def closed_box(size=1.0, element_size=1.0):
     """The inside of a cube [0, size]^3: six quads with inward normals."""
     X, Y, Z = np.eye(3) * size
     o, s = np.zeros(3), np.full(3, size)
-    faces = [quad(o, Y, X), quad(o, X, Z), quad(o, Z, Y),
-             quad(s, -X, -Y), quad(s, -Z, -X), quad(s, -Y, -Z)]
+    faces = [quad(o, X, Y), quad(o, Z, X), quad(o, Y, Z),
+             quad(s, -Y, -X), quad(s, -X, -Z), quad(s, -Z, -Y)]
     return quads_mesh(faces, [element_size] * 6)

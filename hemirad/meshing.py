@@ -1,0 +1,309 @@
+"""Turn a scene's objects into the initial triangle mesh the solver starts from.
+
+Every planar face (of a room or a box), every quad and every smooth patch of an imported
+mesh becomes its own *surface*: vertices are shared inside a surface and never between
+surfaces, so vertex averaging of radiosity never blends across a crease or an object
+boundary. Planar pieces are laid out as near-square grids; imported meshes are split at
+sharp edges and subdivided until no edge is longer than the element size.
+
+Everything here is deterministic: the same scene gives bit-identical arrays.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .errors import HemiradInputError, HemiradWarning
+from .mesh import Mesh
+from .scene import Box, MeshFile, Quad, Room, Scene
+
+# ceil(length / size) with a little slack, so 0.9 / 0.3 = 3.0000000000000004 gives 3 cells.
+_CELL_SLACK = 1e-9
+
+
+@dataclass
+class _Surface:
+    name: str
+    vertices: torch.Tensor  # (V, 3) float64
+    triangles: torch.Tensor  # (T, 3) int64, indices into vertices
+    material: int
+
+
+# ----------------------------------------------------------------------------------------
+# planar pieces
+
+
+def _cells(length: float, element_size: float) -> int:
+    return max(1, math.ceil(length / element_size - _CELL_SLACK))
+
+
+def grid_quad(corners: torch.Tensor, element_size: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lay a near-square grid over a quad and split each cell into two triangles.
+
+    The quad is interpolated bilinearly between its corners, so a slightly non-planar
+    quad (such as the Cornell box's red wall) is followed faithfully. Each cell is split
+    along its shorter diagonal, which avoids needlessly thin triangles on skewed quads.
+
+    Args:
+        corners: (4, 3) corners in order around the quad; the front (normal) side is given
+            by the right-hand rule over corners 0, 1, 2.
+        element_size: target cell side; edge 01 (and 32) get ``ceil(length / size)`` cells,
+            likewise edge 03 (and 12).
+
+    Returns:
+        vertices: ((nu + 1) * (nv + 1), 3) float64, row-major over (v, u).
+        triangles: (2 * nu * nv, 3) int64, wound like the quad.
+    """
+    if not element_size > 0:
+        raise ValueError(f"element_size must be positive, got {element_size}")
+    c = torch.as_tensor(corners, dtype=torch.float64).reshape(4, 3)
+    nu = _cells(max(float((c[1] - c[0]).norm()), float((c[2] - c[3]).norm())), element_size)
+    nv = _cells(max(float((c[3] - c[0]).norm()), float((c[2] - c[1]).norm())), element_size)
+
+    u = torch.linspace(0.0, 1.0, nu + 1, dtype=torch.float64)
+    v = torch.linspace(0.0, 1.0, nv + 1, dtype=torch.float64)
+    vv, uu = torch.meshgrid(v, u, indexing="ij")  # (nv + 1, nu + 1)
+    uu, vv = uu[..., None], vv[..., None]
+    grid = (1 - uu) * (1 - vv) * c[0] + uu * (1 - vv) * c[1] + uu * vv * c[2] + (1 - uu) * vv * c[3]
+    vertices = grid.reshape(-1, 3)
+
+    # cell (i, j) has corners a, b, c, d in the quad's own order 0, 1, 2, 3
+    j, i = torch.meshgrid(torch.arange(nv), torch.arange(nu), indexing="ij")
+    a = (j * (nu + 1) + i).reshape(-1)
+    b, d = a + 1, a + nu + 1
+    cc = d + 1
+    ac = (vertices[cc] - vertices[a]).norm(dim=1)
+    bd = (vertices[d] - vertices[b]).norm(dim=1)
+    # On rectangles the diagonals tie; the tolerance keeps rounding from choosing at random.
+    use_bd = (bd < ac * (1 - 1e-9))[:, None]
+    first = torch.where(use_bd, torch.stack([a, b, d], 1), torch.stack([a, b, cc], 1))
+    second = torch.where(use_bd, torch.stack([b, cc, d], 1), torch.stack([a, cc, d], 1))
+    triangles = torch.stack([first, second], 1).reshape(-1, 3)
+    return vertices, triangles
+
+
+def box_face_corners(lo, hi, face: str, inward: bool) -> torch.Tensor:
+    """(4, 3) corners of one face of the axis-aligned box [lo, hi], ordered so that the
+    right-hand-rule normal points into the box (``inward``) or out of it.
+
+    ``face`` is one of ``floor``/``ceiling`` (y = lo/hi), ``x_min``, ``x_max``, ``z_min``,
+    ``z_max``.
+    """
+    axis, at_max = {"floor": (1, False), "ceiling": (1, True), "x_min": (0, False),
+                    "x_max": (0, True), "z_min": (2, False), "z_max": (2, True)}[face]
+    # (u, v) are the in-plane axes with e_u x e_v = +e_axis, so the order
+    # (u0 v0), (u1 v0), (u1 v1), (u0 v1) has its normal along +axis.
+    ua, va = (axis + 1) % 3, (axis + 2) % 3
+    uv = [(0, 0), (1, 0), (1, 1), (0, 1)]
+    # Along +axis is inward on the min face and outward on the max face.
+    if inward == at_max:
+        uv = uv[::-1]
+    corners = torch.empty(4, 3, dtype=torch.float64)
+    for k, (iu, iv) in enumerate(uv):
+        corners[k, axis] = hi[axis] if at_max else lo[axis]
+        corners[k, ua] = (lo, hi)[iu][ua]
+        corners[k, va] = (lo, hi)[iv][va]
+    return corners
+
+
+_BOX_FACE_NAMES = {"floor": "bottom", "ceiling": "top", "x_min": "x_min", "x_max": "x_max",
+                   "z_min": "z_min", "z_max": "z_max"}
+
+
+def _room_surfaces(room: Room, label: str, scene: Scene) -> list[_Surface]:
+    out = []
+    for face in Room.FACE_NAMES:
+        override = room.faces.get(face)
+        material = (override.material if override and override.material else None) or room.material
+        size = (override.element_size if override and override.element_size else None) or room.element_size
+        v, t = grid_quad(box_face_corners(room.min, room.max, face, inward=True), size)
+        out.append(_Surface(f"{label}.{face}", v, t, scene.material_index(material)))
+    return out
+
+
+def _box_surfaces(box: Box, label: str, scene: Scene) -> list[_Surface]:
+    out = []
+    for face in Room.FACE_NAMES:
+        v, t = grid_quad(box_face_corners(box.min, box.max, face, inward=False), box.element_size)
+        out.append(_Surface(f"{label}.{_BOX_FACE_NAMES[face]}", v, t, scene.material_index(box.material)))
+    return out
+
+
+def _quad_surfaces(quad: Quad, label: str, scene: Scene) -> list[_Surface]:
+    v, t = grid_quad(torch.tensor(quad.corners, dtype=torch.float64), quad.element_size)
+    return [_Surface(label, v, t, scene.material_index(quad.material))]
+
+
+# ----------------------------------------------------------------------------------------
+# imported meshes
+
+
+def read_mesh_file(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read any file trimesh can load as one triangle mesh, unprocessed.
+
+    Returns:
+        vertices: (V, 3) float64; faces: (F, 3) int64.
+    """
+    import trimesh
+
+    try:
+        tm = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many kinds; any of them means an unreadable file
+        raise HemiradInputError(f"could not read the mesh file {path}: {exc}") from exc
+    vertices = np.asarray(getattr(tm, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+    faces = np.asarray(getattr(tm, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+    return vertices, faces
+
+
+def clean_triangles(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
+    """Which triangles to keep, and why the others go.
+
+    A triangle goes if a corner is not finite, if its area is zero (below 1e-12 of the
+    squared bounding-box diagonal, which also covers repeated corners), or if it repeats
+    an earlier triangle with the same winding (two coincident elements would fight for
+    the same hemicube pixels).
+
+    Args:
+        vertices: (V, 3); faces: (F, 3) with vertices already merged by position.
+
+    Returns:
+        keep: (F,) bool; dropped: counts by reason.
+    """
+    c = vertices[faces]  # (F, 3, 3)
+    finite = np.isfinite(c).all(axis=(1, 2))
+    used = c[finite].reshape(-1, 3)
+    diag = float(np.linalg.norm(np.ptp(used, axis=0))) if len(used) else 0.0
+    with np.errstate(invalid="ignore", over="ignore"):
+        doubled_area = np.linalg.norm(np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]), axis=1)
+    nonzero = finite & (doubled_area > 2e-12 * diag**2)
+    # the same triangle twice: compare rotations brought to start at the smallest index
+    rolled = np.stack([np.roll(faces, -k, axis=1) for k in range(3)], 1)  # (F, 3, 3)
+    canon = rolled[np.arange(len(faces)), faces.argmin(axis=1)]
+    first = np.zeros(len(faces), dtype=bool)
+    if len(faces):
+        _, index = np.unique(canon, axis=0, return_index=True)
+        first[index] = True
+    keep = nonzero & first
+    dropped = {"non-finite": int((~finite).sum()), "zero-area": int((finite & ~nonzero).sum()),
+               "duplicate": int((nonzero & ~first).sum())}
+    return keep, dropped
+
+
+def smooth_patches(vertices: np.ndarray, faces: np.ndarray, crease_angle: float) -> list[np.ndarray]:
+    """Group faces into patches joined across edges no sharper than ``crease_angle`` (degrees).
+
+    Two faces are joined when they share an edge and their normals differ by at most the
+    crease angle; patches are the connected components of that relation. Faces with
+    opposite winding across an edge differ by nearly 180 degrees and so stay apart.
+
+    Returns:
+        A list of (F_k,) int64 face-index arrays, ordered by their smallest face index,
+        each sorted; together they partition ``range(len(faces))``.
+    """
+    import trimesh
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(faces)
+    tm = trimesh.Trimesh(vertices, faces, process=False, validate=False)
+    pairs = np.asarray(tm.face_adjacency, dtype=np.int64).reshape(-1, 2)
+    angles = np.asarray(tm.face_adjacency_angles, dtype=np.float64).reshape(-1)
+    joined = pairs[angles <= math.radians(crease_angle) + 1e-9]
+    graph = coo_matrix((np.ones(len(joined)), (joined[:, 0], joined[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    # scipy numbers components in order of their first face, so this order is stable
+    order = np.argsort(labels, kind="stable")
+    splits = np.flatnonzero(np.diff(labels[order])) + 1
+    return [np.sort(p) for p in np.split(order, splits)]
+
+
+def _subdivide(vertices: np.ndarray, faces: np.ndarray, element_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Bisect edges longer than ``element_size`` until none is left (conforming: each long
+    edge gets one shared midpoint, so no T-vertices appear inside the patch)."""
+    from trimesh.remesh import subdivide_to_size
+
+    longest = float(np.linalg.norm(vertices[faces] - vertices[np.roll(faces, 1, axis=1)], axis=2).max())
+    # Each round halves every long edge; the slack covers the medians the splits create.
+    rounds = 2 * max(0, math.ceil(math.log2(max(longest / element_size, 1.0)))) + 8
+    v, f = subdivide_to_size(vertices, faces, max_edge=element_size, max_iter=rounds)
+    return np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)
+
+
+def _mesh_file_surfaces(obj: MeshFile, label: str, scene: Scene) -> list[_Surface]:
+    raw_vertices, raw_faces = read_mesh_file(obj.path)
+    if len(raw_faces) == 0:
+        raise HemiradInputError(f"{label}: the mesh file {obj.path} holds no triangles")
+    if raw_faces.min() < 0 or raw_faces.max() >= len(raw_vertices):
+        raise HemiradInputError(f"{label}: the mesh file {obj.path} indexes vertices it does not have")
+
+    # Merge by exact position so adjacency sees through per-corner normals and UVs
+    # (and STL's unshared corners); np.unique's sorted order keeps this deterministic.
+    vertices, inverse = np.unique(raw_vertices, axis=0, return_inverse=True)
+    faces = inverse.reshape(-1)[raw_faces]
+
+    m = np.asarray(obj.transform, dtype=np.float64)
+    vertices = vertices @ m[:3, :3].T + m[:3, 3]
+    if np.linalg.det(m[:3, :3]) < 0:
+        faces = faces[:, [0, 2, 1]]  # a mirroring transform would turn every face inside out
+
+    keep, dropped = clean_triangles(vertices, faces)
+    if not keep.all():
+        reasons = ", ".join(f"{n} {why}" for why, n in dropped.items() if n)
+        warnings.warn(f"{label}: dropped {int((~keep).sum())} of {len(faces)} triangles of "
+                      f"{Path(obj.path).name} ({reasons})", HemiradWarning, stacklevel=3)
+    faces = faces[keep]
+    if len(faces) == 0:
+        raise HemiradInputError(f"{label}: the mesh file {obj.path} has no triangle with a non-zero area")
+
+    material = scene.material_index(obj.material)
+    patches = smooth_patches(vertices, faces, obj.crease_angle)
+    out = []
+    for k, patch in enumerate(patches):
+        used, local = np.unique(faces[patch], return_inverse=True)
+        v, f = _subdivide(vertices[used], local.reshape(-1, 3), obj.element_size)
+        name = label if len(patches) == 1 else f"{label}.patch{k}"
+        out.append(_Surface(name, torch.from_numpy(v), torch.from_numpy(f), material))
+    return out
+
+
+# ----------------------------------------------------------------------------------------
+# the scene
+
+
+def _labels(scene: Scene) -> list[str]:
+    """One name per object; a name shared by several objects falls back to ``objects[i]``."""
+    names = [o.name for o in scene.objects]
+    return [n if names.count(n) == 1 else f"objects[{i}]" for i, n in enumerate(names)]
+
+
+def build_mesh(scene: Scene) -> Mesh:
+    """The initial mesh of a scene: one or more surfaces per object, in object order.
+
+    Surface names are ``<object>.<face>`` for rooms (floor, ceiling, x_min, x_max, z_min,
+    z_max) and boxes (bottom, top, x_min, ...), ``<object>`` for quads and ``<object>`` or
+    ``<object>.patch<k>`` for the smooth patches of imported meshes, where ``<object>`` is
+    the object's name (the loader names unnamed objects ``objects[i]``).
+    """
+    surfaces: list[_Surface] = []
+    builders = {Room: _room_surfaces, Box: _box_surfaces, Quad: _quad_surfaces, MeshFile: _mesh_file_surfaces}
+    for obj, label in zip(scene.objects, _labels(scene)):
+        surfaces.extend(builders[type(obj)](obj, label, scene))
+
+    vertices, triangles, surface, material = [], [], [], []
+    offset = 0
+    for s, surf in enumerate(surfaces):
+        vertices.append(surf.vertices)
+        triangles.append(surf.triangles + offset)
+        surface.append(torch.full((len(surf.triangles),), s, dtype=torch.int64))
+        material.append(torch.full((len(surf.triangles),), surf.material, dtype=torch.int64))
+        offset += len(surf.vertices)
+    if not surfaces:
+        empty = torch.zeros(0, dtype=torch.int64)
+        return Mesh(torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.int64), empty, empty, [])
+    return Mesh(torch.cat(vertices), torch.cat(triangles), torch.cat(surface), torch.cat(material),
+                [s.name for s in surfaces])

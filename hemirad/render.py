@@ -1,0 +1,220 @@
+"""Camera views of the solved mesh: Gouraud-shaded per-vertex radiosity through OpenGL.
+
+The image is linear radiosity (no exposure, no sRGB); ``display.to_srgb8`` encodes it.
+Antialiasing renders ``supersample`` times larger into a float framebuffer and box-filters
+in linear space, which behaves the same on every driver (llvmpipe caps MSAA at 4 samples
+and resolves in an unspecified way).
+"""
+from __future__ import annotations
+
+import math
+import weakref
+
+import moderngl
+import numpy as np
+import torch
+
+from .errors import HemiradInputError
+from .gl import GLContext
+from .mesh import Mesh
+from .scene import Camera
+
+_VERTEX_SHADER = """
+#version 330
+uniform mat4 clip_from_eye;
+in vec3 in_position;  // relative to the camera position, rotated into eye space
+in vec3 in_color;
+out vec3 v_color;
+void main() {
+    v_color = in_color;
+    gl_Position = clip_from_eye * vec4(in_position, 1.0);
+}
+"""
+
+_FRAGMENT_SHADER = """
+#version 330
+in vec3 v_color;
+out vec4 f_color;
+void main() {
+    f_color = vec4(v_color, 1.0);
+}
+"""
+
+# One program per context; the context lives as long as the process, but keying weakly
+# keeps this correct if a test ever makes and drops its own.
+_PROGRAMS: "weakref.WeakKeyDictionary[moderngl.Context, moderngl.Program]" = weakref.WeakKeyDictionary()
+
+
+def _program(ctx: moderngl.Context) -> moderngl.Program:
+    program = _PROGRAMS.get(ctx)
+    if program is None:
+        program = ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
+        _PROGRAMS[ctx] = program
+    return program
+
+
+def camera_basis(camera: Camera) -> np.ndarray:
+    """(3, 3) float64 rows: right, up, backward (the eye-space x, y, z axes in world space).
+
+    OpenGL's eye space looks down -z, so the third row points from the target to the eye.
+    """
+    eye = np.asarray(camera.position, dtype=np.float64)
+    forward = np.asarray(camera.look_at, dtype=np.float64) - eye
+    if not np.linalg.norm(forward) > 0:
+        raise HemiradInputError("camera.look_at must differ from camera.position.")
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, np.asarray(camera.up, dtype=np.float64))
+    if not np.linalg.norm(right) > 1e-9:
+        raise HemiradInputError("camera.up must not be parallel to the viewing direction (look_at - position).")
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    return np.stack([right, up, -forward])
+
+
+def perspective(fov_y_degrees: float, aspect: float, near: float, far: float) -> np.ndarray:
+    """(4, 4) float64 OpenGL projection (eye space -> clip space), row-major."""
+    f = 1.0 / math.tan(math.radians(fov_y_degrees) / 2.0)
+    return np.array([
+        [f / aspect, 0.0, 0.0, 0.0],
+        [0.0, f, 0.0, 0.0],
+        [0.0, 0.0, (far + near) / (near - far), 2.0 * far * near / (near - far)],
+        [0.0, 0.0, -1.0, 0.0],
+    ])
+
+
+def _point_triangle_distance(point: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
+    """Euclidean distance from one point (3,) to each triangle (T, 3, 3); returns (T,).
+
+    Inside the triangle's prism the distance is the plane distance; outside, the nearest
+    point lies on an edge. Degenerate triangles fall through to their edges.
+    """
+    a, b, c = corners.unbind(dim=1)
+    normal = torch.linalg.cross(b - a, c - a)
+    nn = (normal * normal).sum(-1)
+    plane_offset = ((point - a) * normal).sum(-1)
+    projected = point - normal * (plane_offset / nn.clamp_min(1e-300))[:, None]
+    inside = nn > 0
+    edge_distances = []
+    for start, end in ((a, b), (b, c), (c, a)):
+        edge = end - start
+        inside &= (torch.linalg.cross(edge, projected - start) * normal).sum(-1) >= 0
+        t = (((point - start) * edge).sum(-1) / (edge * edge).sum(-1).clamp_min(1e-300)).clamp(0.0, 1.0)
+        edge_distances.append((point - (start + t[:, None] * edge)).norm(dim=-1))
+    plane_distance = plane_offset.abs() / nn.clamp_min(1e-300).sqrt()
+    return torch.where(inside, plane_distance, torch.stack(edge_distances).amin(dim=0))
+
+
+def depth_range(mesh: Mesh, camera: Camera) -> tuple[float, float] | None:
+    """(near, far) clip distances that clip nothing visible, or None if all lies behind.
+
+    far: the deepest bounding-box corner along the view axis. near: the distance to the
+    closest point of the mesh, times the cosine of the frustum's corner half-angle (no
+    visible point can be shallower than that). The depth buffer is fixed point, so near
+    is kept as far out as this bound allows rather than set to a tiny constant.
+    """
+    eye = np.asarray(camera.position, dtype=np.float64)
+    backward = camera_basis(camera)[2]
+    lo, hi = (x.detach().cpu().numpy() for x in mesh.bounding_box())
+    box_corners = np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]]
+                            for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    deepest = float(((box_corners - eye) @ -backward).max())
+    if not deepest > 0:
+        return None
+    far = deepest * 1.01
+
+    tan_y = math.tan(math.radians(camera.fov) / 2.0)
+    tan_x = tan_y * camera.width / camera.height
+    cos_corner = 1.0 / math.sqrt(1.0 + tan_x * tan_x + tan_y * tan_y)
+    nearest = float(_point_triangle_distance(torch.as_tensor(eye), mesh.corners.detach().cpu()).min())
+    # Floor: a camera lying on a surface would otherwise get near = 0.
+    near = max(0.99 * nearest * cos_corner, far * 1e-5)
+    return min(near, far * 0.5), far
+
+
+def render_view(mesh: Mesh, vertex_colors, camera: Camera) -> np.ndarray:
+    """Render the mesh with Gouraud-interpolated vertex colours from the camera.
+
+    Depth-tested, both faces drawn, black background, box-filtered supersampling.
+
+    Args:
+        mesh: the mesh to draw.
+        vertex_colors: (V, 3) linear values per vertex (torch or numpy).
+        camera: position, look_at, up, vertical fov, width, height, supersample.
+
+    Returns:
+        (height, width, 3) float32 linear values, first row at the top of the image.
+    """
+    width, height = int(camera.width), int(camera.height)
+    ss = max(1, int(camera.supersample))
+    colors = vertex_colors.detach().cpu().numpy() if isinstance(vertex_colors, torch.Tensor) else np.asarray(vertex_colors)
+    colors = np.ascontiguousarray(colors, dtype=np.float32).reshape(-1, 3)
+    if len(colors) != len(mesh.vertices):
+        raise ValueError(f"need one colour per vertex ({len(mesh.vertices)}), got {len(colors)}")
+    if width < 1 or height < 1:
+        raise HemiradInputError(f"camera width and height must be positive, got {width} x {height}.")
+
+    ctx = GLContext.get()
+    limit = int(ctx.info.get("GL_MAX_RENDERBUFFER_SIZE", 4096))
+    if max(width, height) * ss > limit:
+        raise HemiradInputError(
+            f"camera size {width} x {height} with supersample {ss} exceeds the OpenGL "
+            f"framebuffer limit of {limit} pixels; lower camera.supersample or the size.")
+
+    image = np.zeros((height, width, 3), dtype=np.float32)
+    if mesh.num_elements == 0:
+        return image
+    clip = depth_range(mesh, camera)
+    if clip is None:
+        return image
+
+    basis = camera_basis(camera)
+    # Translate to the eye in float64 before the float32 upload: scene coordinates far from
+    # the origin would otherwise lose precision in the GPU's model-view transform.
+    eye = np.asarray(camera.position, dtype=np.float64)
+    positions = ((mesh.vertices.detach().cpu().numpy() - eye) @ basis.T).astype(np.float32)
+    indices = mesh.triangles.detach().cpu().numpy().astype(np.int32)
+    projection = perspective(camera.fov, width / height, *clip)
+
+    program = _program(ctx)
+    # GLSL reads matrices column-major.
+    program["clip_from_eye"].write(projection.T.astype(np.float32).tobytes())
+
+    big_w, big_h = width * ss, height * ss
+    resources = []
+    try:
+        color_rb = ctx.renderbuffer((big_w, big_h), components=4, dtype="f4")
+        resources.append(color_rb)
+        depth_rb = ctx.depth_renderbuffer((big_w, big_h))
+        resources.append(depth_rb)
+        fbo = ctx.framebuffer(color_attachments=[color_rb], depth_attachment=depth_rb)
+        resources.append(fbo)
+        position_vbo = ctx.buffer(positions.tobytes())
+        resources.append(position_vbo)
+        color_vbo = ctx.buffer(colors.tobytes())
+        resources.append(color_vbo)
+        ibo = ctx.buffer(indices.tobytes())
+        resources.append(ibo)
+        vao = ctx.vertex_array(
+            program,
+            [(position_vbo, "3f", "in_position"), (color_vbo, "3f", "in_color")],
+            index_buffer=ibo,
+            index_element_size=4,
+        )
+        resources.append(vao)
+        # The scope restores the previous framebuffer and enable flags on exit, so other
+        # users of the shared context (the hemicube) see no change in state.
+        scope = ctx.scope(fbo, enable_only=moderngl.DEPTH_TEST)
+        resources.append(scope)
+        with scope:
+            fbo.viewport = (0, 0, big_w, big_h)
+            ctx.depth_func = "<"
+            fbo.clear(0.0, 0.0, 0.0, 1.0, depth=1.0)
+            vao.render(moderngl.TRIANGLES)
+            raw = fbo.read(components=4, dtype="f4")
+    finally:
+        for resource in reversed(resources):
+            resource.release()
+
+    # glReadPixels returns the bottom row first; images are stored top row first.
+    big = np.frombuffer(raw, dtype=np.float32).reshape(big_h, big_w, 4)[::-1, :, :3]
+    return big.reshape(height, ss, width, ss, 3).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)

@@ -1,0 +1,73 @@
+"""Seconds per shot of the progressive solver, split into raster, read-back and torch.
+
+    python scripts/bench.py [--scene floating] [--shots 30] [--resolution 128]
+
+Runs the scene at several element sizes (the scene's own, scaled) for a fixed number of
+shots and prints a Markdown table. Timings are for reading, never for asserting.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import platform
+import time
+
+import torch
+
+from hemirad import load_scene
+from hemirad.gl import GLContext
+from hemirad.meshing import build_mesh
+from hemirad.solver import ProgressiveSolver
+
+
+def scaled(scene, factor: float):
+    """A copy of the scene with every element size multiplied by ``factor``."""
+    scene = copy.deepcopy(scene)
+    for obj in scene.objects:
+        obj.element_size *= factor
+        for face in getattr(obj, "faces", {}).values():
+            if face.element_size is not None:
+                face.element_size *= factor
+    return scene
+
+
+def bench(scene, shots: int, resolution: int) -> dict:
+    mesh = build_mesh(scene)
+    reflectance = scene.reflectance_table()[mesh.material]
+    emission = scene.emission_table()[mesh.material]
+    solver = ProgressiveSolver(mesh, reflectance, emission, resolution)
+    try:
+        solver.shoot()  # warm-up: shader compilation and first allocations
+        warm = solver.timings()
+        start = time.perf_counter()
+        solver.run(shots + 1, unshot_fraction=0.0)
+        wall = time.perf_counter() - start
+        phases = {k: (v - warm[k]) / shots for k, v in solver.timings().items()}
+    finally:
+        solver.close()
+    return {"elements": mesh.num_elements, "shots": shots, "per_shot": wall / shots, **phases}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default="floating")
+    parser.add_argument("--shots", type=int, default=30)
+    parser.add_argument("--resolution", type=int, default=128)
+    parser.add_argument("--factors", type=float, nargs="+", default=[2.0, 1.0, 0.5, 0.25],
+                        help="element-size multipliers (smaller: more elements)")
+    args = parser.parse_args()
+    scene = load_scene(args.scene)
+    print(f"scene {args.scene}, hemicube {args.resolution}, {args.shots} shots after one warm-up; "
+          f"{GLContext.renderer_name()}, {platform.processor() or platform.machine()}, "
+          f"torch {torch.__version__} with {torch.get_num_threads()} threads\n")
+    print("| size factor | elements | ms/shot | raster | read-back | torch form factors | update |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    for factor in args.factors:
+        r = bench(scaled(scene, factor), args.shots, args.resolution)
+        ms = {k: 1e3 * r[k] for k in ("per_shot", "raster", "readback", "form_factors", "update")}
+        print(f"| {factor:g} | {r['elements']} | {ms['per_shot']:.2f} | {ms['raster']:.2f} | "
+              f"{ms['readback']:.2f} | {ms['form_factors']:.2f} | {ms['update']:.2f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
