@@ -22,6 +22,10 @@ class Mesh:
         surface: (T,) int64 surface index of each triangle.
         material: (T,) int64 index into the scene's material table.
         surface_names: one readable name per surface, e.g. ``"objects[0].floor"``.
+        level: (T,) int64 refinement depth of each triangle (0 for the initial mesh).
+        edge_parents: (V, 2) int64: for a vertex made at the midpoint of an edge by
+            splitting, that edge's two end vertices; -1 for every other vertex. This is
+            what finds the T-vertices that edge splitting leaves on unsplit neighbours.
     """
 
     vertices: torch.Tensor
@@ -29,6 +33,8 @@ class Mesh:
     surface: torch.Tensor
     material: torch.Tensor
     surface_names: list[str] = field(default_factory=list)
+    level: torch.Tensor | None = None
+    edge_parents: torch.Tensor | None = None
 
     def __post_init__(self):
         self.vertices = torch.as_tensor(self.vertices, dtype=torch.float64).reshape(-1, 3)
@@ -36,8 +42,16 @@ class Mesh:
         self.surface = torch.as_tensor(self.surface, dtype=torch.int64).reshape(-1)
         self.material = torch.as_tensor(self.material, dtype=torch.int64).reshape(-1)
         n = len(self.triangles)
-        if len(self.surface) != n or len(self.material) != n:
-            raise ValueError("surface and material need one entry per triangle")
+        if self.level is None:
+            self.level = torch.zeros(n, dtype=torch.int64)
+        if self.edge_parents is None:
+            self.edge_parents = torch.full((len(self.vertices), 2), -1, dtype=torch.int64)
+        self.level = torch.as_tensor(self.level, dtype=torch.int64).reshape(-1)
+        self.edge_parents = torch.as_tensor(self.edge_parents, dtype=torch.int64).reshape(-1, 2)
+        if len(self.surface) != n or len(self.material) != n or len(self.level) != n:
+            raise ValueError("surface, material and level need one entry per triangle")
+        if len(self.edge_parents) != len(self.vertices):
+            raise ValueError("edge_parents needs one row per vertex")
 
     @property
     def num_elements(self) -> int:
@@ -75,14 +89,17 @@ class Mesh:
     @staticmethod
     def concatenate(parts: list["Mesh"]) -> "Mesh":
         """Join meshes; surface indices and names are renumbered, materials kept."""
-        vertices, triangles, surface, material, names = [], [], [], [], []
+        vertices, triangles, surface, material, names, level, parents = [], [], [], [], [], [], []
         v_off = s_off = 0
         for p in parts:
             vertices.append(p.vertices)
             triangles.append(p.triangles + v_off)
             surface.append(p.surface + s_off)
             material.append(p.material)
+            level.append(p.level)
+            parents.append(torch.where(p.edge_parents >= 0, p.edge_parents + v_off, p.edge_parents))
             names.extend(p.surface_names or [f"surface{s_off + i}" for i in range(int(p.surface.max()) + 1 if len(p.surface) else 0)])
             v_off += len(p.vertices)
             s_off += int(p.surface.max()) + 1 if len(p.surface) else 0
-        return Mesh(torch.cat(vertices), torch.cat(triangles), torch.cat(surface), torch.cat(material), names)
+        return Mesh(torch.cat(vertices), torch.cat(triangles), torch.cat(surface), torch.cat(material), names,
+                    torch.cat(level), torch.cat(parents))
