@@ -120,8 +120,13 @@ class HemicubeFormFactors:
     def close(self) -> None:
         self.hemicube.release()
 
-    def from_element(self, shooter: int) -> torch.Tensor:
-        """(T,) F_sj from element ``shooter`` (a point at its centroid) to every element j."""
+    def render(self, shooter: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
+        """Render the hemicube of element ``shooter`` (a point at its centroid).
+
+        Returns:
+            element (3R, R) int64 and front (3R, R) bool (see ``decode_items``), the eye (3,)
+            and the hemicube's frame (3, 3).
+        """
         normal = self.normals[shooter].numpy()
         corners = self.corners[shooter].numpy()
         frame = tangent_frame(normal, corners[1] - corners[0])
@@ -129,6 +134,13 @@ class HemicubeFormFactors:
         items = self.hemicube.render(eye, frame, self.near, self.far)
         start = time.perf_counter()
         element, front = decode_items(items)
+        self.seconds += time.perf_counter() - start
+        return element, front, eye, frame
+
+    def from_element(self, shooter: int) -> torch.Tensor:
+        """(T,) F_sj from element ``shooter`` to every element j."""
+        element, front, _, _ = self.render(shooter)
+        start = time.perf_counter()
         F = element_form_factors(element, front, self.weights, len(self.corners))
         self.seconds += time.perf_counter() - start
         return F

@@ -1,6 +1,7 @@
 """The one OpenGL context of the process (headless EGL), made on first use."""
 from __future__ import annotations
 
+import importlib.util
 import threading
 
 import moderngl
@@ -18,6 +19,7 @@ class GLContext:
     _instance: "GLContext | None" = None
 
     def __init__(self):
+        _load_triton_first()
         try:
             self.ctx = moderngl.create_standalone_context(backend="egl", require=330)
         except Exception as exc:  # the cause is nearly always missing system packages
@@ -42,3 +44,15 @@ class GLContext:
     def renderer_name(cls) -> str:
         cls.get()
         return cls._instance.renderer
+
+
+def _load_triton_first() -> None:
+    """Import triton, when installed, before Mesa loads its own LLVM into the process.
+
+    PyTorch's CUDA wheels bring triton, which links another LLVM. Imported after llvmpipe has
+    loaded LLVM 15, triton's native module crashes the process (seen with torch 2.15 and Mesa
+    22.3); imported before, both work. torch.func imports it lazily (through torch._dynamo)
+    on the first forward-mode transform, which comes after the context is made.
+    """
+    if importlib.util.find_spec("triton") is not None:
+        import triton  # noqa: F401

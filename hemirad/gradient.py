@@ -1,0 +1,243 @@
+"""Form factors as differentiable functions of the shooter's position (DESIGN §2).
+
+The hemicube's item buffer is a step function of the eye position; what it sees is turned
+into a smooth torch expression of the eye c whose value at the rendered eye c0 is the
+hemicube's F_sj and whose derivative is the first-order change of F_sj as c moves:
+
+* the **interior** term holds each pixel's receiver patch fixed (its world hit point y_q,
+  the receiver normal n_j and the area dA_q it covers) and lets the point-to-patch kernel
+  K_q(c) = (n_s . (y_q - c)) (n_j . (c - y_q)) / (pi |y_q - c|^4) dA_q vary;
+* the **shadow-edge** term adds, where neighbouring pixels see an occluder N in front of a
+  farther receiver F, the coverage F gains or loses as the eye's parallax slides N's edge
+  across it: F_F += -dF_bar ((delta(X_N) - delta(X_F)) . e) / h, zero in value at c0.
+
+Both are pure functions of c over tensors of one render; ``form_factor_jacobian`` takes
+their Jacobian with forward-mode autograd (three tangents for N outputs: the paper's
+bottom-up mode), with no Python loop over elements or pixels.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import torch
+from torch.func import jacfwd
+
+from .formfactor import hemicube_directions
+from .hemicube import FACES, face_viewports
+
+
+@lru_cache(maxsize=8)
+def pixel_faces(resolution: int) -> torch.Tensor:
+    """(3R,) int64: which hemicube face (index into ``FACES``) each atlas row belongs to."""
+    rows = torch.empty(3 * resolution, dtype=torch.int64)
+    for face, (_, y0, _, height) in enumerate(face_viewports(resolution)):
+        rows[y0:y0 + height] = face
+    return rows
+
+
+@dataclass
+class ShotView:
+    """What one hemicube render saw, as detached tensors (P = 3R^2 pixels, flattened).
+
+    Attributes:
+        eye: (3,) c0, where the hemicube was rendered.
+        frame: (3, 3) rows t, b, n of its local frame; n is the shooter's normal.
+        element: (P,) element seen by each pixel, -1 for none.
+        front: (P,) bool, the pixel sees an element's front.
+        weight: (P,) delta form factor of each pixel.
+        hit: (P, 3) world point each pixel sees (ray-plane intersection; junk where element < 0).
+        resolution: R.
+    """
+
+    eye: torch.Tensor
+    frame: torch.Tensor
+    element: torch.Tensor
+    front: torch.Tensor
+    weight: torch.Tensor
+    hit: torch.Tensor
+    resolution: int
+
+    @staticmethod
+    def from_render(element: torch.Tensor, front: torch.Tensor, weight: torch.Tensor, eye, frame,
+                    normals: torch.Tensor, points: torch.Tensor) -> "ShotView":
+        """Reconstruct the hit points of an item atlas.
+
+        Args:
+            element, front, weight: (3R, R) from ``formfactor.decode_items`` / ``delta_form_factors``.
+            eye: (3,) and frame: (3, 3) as given to ``Hemicube.render``.
+            normals, points: (T, 3) every element's unit normal and a point on its plane.
+        """
+        R = element.shape[1]
+        eye = torch.as_tensor(eye, dtype=torch.float64)
+        frame = torch.as_tensor(frame, dtype=torch.float64)
+        directions = (hemicube_directions(R) @ frame).reshape(-1, 3)  # world, unnormalised
+        element = element.reshape(-1)
+        seen = element.clamp(min=0)
+        n = normals[seen]
+        # Exact: the pixel's ray meets the plane of the element it sees.
+        t = ((points[seen] - eye) * n).sum(1) / (directions * n).sum(1)
+        hit = eye + t[:, None] * directions
+        return ShotView(eye, frame, element, front.reshape(-1), weight.reshape(-1), hit, R)
+
+
+def interior_form_factors(c: torch.Tensor, view: ShotView, normals: torch.Tensor,
+                          num_elements: int) -> torch.Tensor:
+    """F_sj(c) with each pixel's receiver patch frozen; equals the hemicube's F_sj at c = eye.
+
+    Args:
+        c: (3,) eye position (the variable).
+        view: the render at ``view.eye``.
+        normals: (T, 3) element unit normals.
+    Returns:
+        (T,)
+    """
+    mask = view.front
+    y, j, w = view.hit[mask], view.element[mask], view.weight[mask]
+    n_s, n_j = view.frame[2], normals[j]
+
+    def kernel(eye):  # (n_s . (y - c)) (n_j . (c - y)) / |y - c|^4; pi and dA_q cancel below
+        r = y - eye
+        r2 = (r * r).sum(1)
+        return (r * n_s).sum(1) * -(r * n_j).sum(1) / (r2 * r2)
+
+    # K_q(c) = w_q kernel(c) / kernel(c0): dA_q is defined by the hemicube's own weight.
+    K = w * kernel(c) / kernel(view.eye)
+    return torch.zeros(num_elements, dtype=K.dtype).index_add(0, j, K)
+
+
+@dataclass
+class OcclusionPairs:
+    """Neighbouring pixel pairs at which a nearer element N hides a farther receiver F.
+
+    Attributes:
+        near_hit, far_hit: (K, 3) the two pixels' world hit points X_N, X_F.
+        far_element: (K,) F's element index.
+        axis: (K, 2) unit image-plane step from N's pixel to F's pixel.
+        face: (K,) the hemicube face both pixels lie on.
+        weight: (K,) mean delta form factor of the two pixels.
+    """
+
+    near_hit: torch.Tensor
+    far_hit: torch.Tensor
+    far_element: torch.Tensor
+    axis: torch.Tensor
+    face: torch.Tensor
+    weight: torch.Tensor
+
+
+def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor) -> OcclusionPairs:
+    """Find the 4-neighbour pixel pairs within one face that straddle an occluding edge.
+
+    A pair qualifies when the pixels see different elements, the farther one F is seen from
+    the front, X_F lies beyond N's plane and X_N lies in front of F's plane (both as seen
+    from the eye). The two plane tests reject edges where surfaces merely meet: coplanar
+    neighbours, concave creases (X_F in front of N's plane) and convex creases seen from
+    outside (X_N behind F's plane); only true occluders are left.
+
+    Args:
+        view: one render.
+        normals, points: (T, 3) element unit normals and points on their planes.
+    """
+    R = view.resolution
+    grid = torch.arange(3 * R * R).reshape(3 * R, R)
+    rows = pixel_faces(R)
+    horizontal = (grid[:, :-1].reshape(-1), grid[:, 1:].reshape(-1))
+    same_face = rows[:-1] == rows[1:]
+    vertical = (grid[:-1][same_face].reshape(-1), grid[1:][same_face].reshape(-1))
+    a = torch.cat([horizontal[0], vertical[0]])
+    b = torch.cat([horizontal[1], vertical[1]])
+    step = torch.cat([torch.tensor([[1.0, 0.0]]).expand(len(horizontal[0]), 2),
+                      torch.tensor([[0.0, 1.0]]).expand(len(vertical[0]), 2)]).to(torch.float64)
+
+    ea, eb = view.element[a], view.element[b]
+    keep = (ea >= 0) & (eb >= 0) & (ea != eb)
+    a, b, step, ea, eb = a[keep], b[keep], step[keep], ea[keep], eb[keep]
+    da = (view.hit[a] - view.eye).norm(dim=1)
+    db = (view.hit[b] - view.eye).norm(dim=1)
+    a_near = da < db
+    near = torch.where(a_near, a, b)
+    far = torch.where(a_near, b, a)
+    axis = torch.where(a_near[:, None], step, -step)  # from N's pixel towards F's
+    en, ef = view.element[near], view.element[far]
+    Xn, Xf = view.hit[near], view.hit[far]
+
+    def side(X, k):  # signed distance of X from element k's plane, positive on the eye's side
+        n = normals[k]
+        eye_side = torch.sign(((view.eye - points[k]) * n).sum(1))
+        return ((X - points[k]) * n).sum(1) * eye_side
+
+    tol = 1e-7 * (Xf - view.eye).norm(dim=1)
+    occludes = view.front[far] & (side(Xf, en) < -tol) & (side(Xn, ef) > tol)
+    near, far, en, ef = near[occludes], far[occludes], en[occludes], ef[occludes]
+    # Both parallax points lie on the ray between the two pixel centres: taking each pixel's
+    # own hit point would add the image-plane offset between them (one pixel, of either
+    # sign) to the parallax, a bias that does not shrink relative to the edge term as the
+    # eye moves along the view axis.
+    ray = 0.5 * (view.hit[near] - view.eye) / (view.hit[near] - view.eye).norm(dim=1, keepdim=True)
+    ray = ray + 0.5 * (view.hit[far] - view.eye) / (view.hit[far] - view.eye).norm(dim=1, keepdim=True)
+
+    def on_plane(k):
+        n = normals[k]
+        return view.eye + (((points[k] - view.eye) * n).sum(1) / (ray * n).sum(1))[:, None] * ray
+
+    weight = 0.5 * (view.weight[near] + view.weight[far])
+    return OcclusionPairs(on_plane(en), on_plane(ef), ef, axis[occludes], rows[near // R], weight)
+
+
+def face_axes(frame: torch.Tensor) -> torch.Tensor:
+    """(5, 3, 3) world forward, right and up axes of every hemicube face."""
+    local = torch.tensor([face[:3] for face in FACES], dtype=torch.float64)  # (5, 3, 3)
+    return local @ frame
+
+
+def shadow_edge_form_factors(c: torch.Tensor, view: ShotView, pairs: OcclusionPairs,
+                             num_elements: int) -> torch.Tensor:
+    """The coverage each receiver gains or loses as occluding edges slide with the eye.
+
+    Zero at c = eye; its derivative is the visibility part of dF_sj/dc.
+
+    Returns:
+        (T,)
+    """
+    axes = face_axes(view.frame)[pairs.face]  # (K, 3, 3): forward, right, up
+    h = 2.0 / view.resolution
+
+    def image_point(X, eye):  # (K, 2) face-image coordinates of X seen from ``eye``
+        r = X - eye
+        depth = (r * axes[:, 0]).sum(1)
+        return torch.stack([(r * axes[:, 1]).sum(1), (r * axes[:, 2]).sum(1)], 1) / depth[:, None]
+
+    def shift(X):
+        return image_point(X, c) - image_point(X, view.eye)
+
+    parallax = ((shift(pairs.near_hit) - shift(pairs.far_hit)) * pairs.axis).sum(1)
+    term = -pairs.weight * parallax / h
+    return torch.zeros(num_elements, dtype=term.dtype).index_add(0, pairs.far_element, term)
+
+
+def form_factor_jacobian(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
+                         interior: bool = True, shadow_edges: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """F_sj and dF_sj/dc for every element, by forward-mode autograd.
+
+    Args:
+        view: one render; normals, points: (T, 3) element planes.
+        interior, shadow_edges: which terms to include (for accuracy studies).
+    Returns:
+        F (T,) the hemicube form factors, and J (T, 3) their gradient with respect to the eye.
+    """
+    T = len(normals)
+    pairs = occlusion_pairs(view, normals, points) if shadow_edges else None
+
+    def F(c):
+        total = torch.zeros(T, dtype=torch.float64)
+        if interior:
+            total = total + interior_form_factors(c, view, normals, T)
+        if pairs is not None:
+            total = total + shadow_edge_form_factors(c, view, pairs, T)
+        return total, total
+
+    J, value = jacfwd(F, has_aux=True)(view.eye)
+    if not interior:  # the value is the hemicube's F whatever the gradient includes
+        value = interior_form_factors(view.eye, view, normals, T)
+    return value, J

@@ -1,0 +1,116 @@
+"""Gradients of the form factors with respect to the shooter's position (DESIGN §2)."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from hemirad.analytic import point_to_polygon
+from hemirad.formfactor import HemicubeFormFactors
+from hemirad.gradient import ShotView, form_factor_jacobian, interior_form_factors
+from hemirad.mesh import Mesh
+
+Z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+
+
+def rectangle(x0, x1, y0, y1, z, angle=0.0, centre=(0.0, 0.0)):
+    """(4, 3) a horizontal rectangle at height z, rotated by ``angle`` degrees about the
+    vertical through ``centre``, wound to face down (towards a source below it)."""
+    corners = np.array([[x0, y0], [x0, y1], [x1, y1], [x1, y0]], dtype=np.float64) - centre
+    a = math.radians(angle)
+    corners = corners @ np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]]) + centre
+    return np.column_stack([corners, np.full(4, z)])
+
+
+def shot(point, polygons, resolution=256):
+    """Render from a tiny upward-facing source at ``point``; the other polygons are meshed
+    as two triangles each. Returns the render's view, the planes and the element ranges."""
+    h = 1e-3
+    p = np.asarray(point, dtype=np.float64)
+    vertices = [np.array([p + [h, 0, 0], p + [-h / 2, h, 0], p + [-h / 2, -h, 0]])]
+    triangles, ranges = [[0, 1, 2]], []
+    for poly in polygons:
+        base = sum(len(v) for v in vertices)
+        vertices.append(poly)
+        ranges.append(slice(len(triangles), len(triangles) + 2))
+        triangles += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
+    mesh = Mesh(np.concatenate(vertices), triangles, range(len(triangles)), [0] * len(triangles))
+    ff = HemicubeFormFactors(mesh.corners, resolution)
+    try:
+        element, front, eye, frame = ff.render(0)
+    finally:
+        ff.close()
+    view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
+    return view, ff.normals, ff.centroids, ranges
+
+
+def lambert_gradient(eye, receiver, blockers=()):
+    """dF/dc of the visible part: the receiver minus the blockers' shadows, which lie inside it
+    (a shadow subtends the same projected solid angle as its blocker)."""
+    c = torch.as_tensor(eye, dtype=torch.float64).detach().clone().requires_grad_(True)
+    F = point_to_polygon(c, Z, torch.tensor(receiver))
+    for b in blockers:
+        F = F - point_to_polygon(c, Z, torch.tensor(b))
+    (grad,) = torch.autograd.grad(F, c)
+    return float(F.detach()), grad
+
+
+def relative_error(J, reference):
+    return float((J - reference).norm() / reference.norm())
+
+
+RECEIVER = rectangle(-1.0, 1.2, -1.0, 1.1, 1.0)
+BLOCKER = rectangle(-0.2, 0.3, -0.25, 0.2, 0.6)
+rng = np.random.default_rng(7)
+EYES = [np.array([*rng.uniform(-0.2, 0.2, 2), 0.0]) for _ in range(4)]
+
+
+def test_interior_gradient_equals_finite_differences_of_the_same_function():
+    view, normals, points, ranges = shot(EYES[0], [RECEIVER, BLOCKER], resolution=64)
+    T = len(normals)
+    _, J = form_factor_jacobian(view, normals, points, interior=True, shadow_edges=False)
+    step = 1e-5
+    for axis in range(3):
+        dc = torch.zeros(3, dtype=torch.float64)
+        dc[axis] = step
+        fd = (interior_form_factors(view.eye + dc, view, normals, T)
+              - interior_form_factors(view.eye - dc, view, normals, T)) / (2 * step)
+        torch.testing.assert_close(J[:, axis], fd, rtol=1e-4, atol=1e-9)
+
+
+def test_value_is_the_hemicube_form_factor():
+    view, normals, points, _ = shot(EYES[1], [RECEIVER, BLOCKER], resolution=64)
+    F, _ = form_factor_jacobian(view, normals, points)
+    hemicube = torch.bincount(view.element[view.front], view.weight[view.front], minlength=len(normals))
+    torch.testing.assert_close(F, hemicube, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("eye", EYES)
+def test_unoccluded_gradient_matches_lambert(eye):
+    view, normals, points, (receiver,) = shot(eye, [RECEIVER])
+    _, J = form_factor_jacobian(view, normals, points)
+    _, reference = lambert_gradient(view.eye, RECEIVER)
+    assert relative_error(J[receiver].sum(0), reference) < 0.02
+
+
+BLOCKED_CASES = {
+    "parallel blocker": (RECEIVER, BLOCKER),
+    "blocker rotated 30 degrees": (RECEIVER, rectangle(-0.2, 0.3, -0.25, 0.2, 0.6, angle=30, centre=(0.05, -0.02))),
+    # The receiver runs from the top face across the seam onto the +x side face (x/z > 1),
+    # and the blocker's shadow edge crosses the seam with it.
+    "across the top/side seam": (rectangle(0.2, 0.9, -0.35, 0.35, 0.4), rectangle(0.14, 0.4, -0.15, 0.15, 0.25)),
+}
+
+
+@pytest.mark.parametrize("case", list(BLOCKED_CASES))
+def test_shadow_edge_term_makes_the_gradient_see_the_blocker(case):
+    receiver_polygon, blocker_polygon = BLOCKED_CASES[case]
+    for eye in EYES:
+        eye = eye * (0.25 if "seam" in case else 1.0)
+        view, normals, points, (receiver, _) = shot(eye, [receiver_polygon, blocker_polygon])
+        F_value, reference = lambert_gradient(view.eye, receiver_polygon, [blocker_polygon])
+        F, J = form_factor_jacobian(view, normals, points)
+        _, J_interior = form_factor_jacobian(view, normals, points, shadow_edges=False)
+        assert float(F[receiver].sum()) == pytest.approx(F_value, rel=0.01)
+        assert relative_error(J[receiver].sum(0), reference) < 0.10
+        assert relative_error(J_interior[receiver].sum(0), reference) > 0.50
