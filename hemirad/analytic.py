@@ -59,3 +59,40 @@ def point_to_polygon(point: torch.Tensor, normal: torch.Tensor, polygon: torch.T
     cross_norm = cross.norm(dim=1)
     theta = torch.atan2(cross_norm, (R * R_next).sum(dim=1))
     return ((theta * (cross @ normal) / cross_norm).sum() / (2 * math.pi)).abs()
+
+
+def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
+    """Unoccluded form factors from a differential area to many triangles at once.
+
+    Each triangle is first clipped to the half-space above the point's tangent plane (what a
+    hemicube can see), then Lambert's formula is summed over the clipped polygon's edges.
+
+    Args:
+        point: (3,); normal: (3,) unit; triangles: (T, 3, 3).
+    Returns:
+        (T,) form factors, >= 0.
+    """
+    T = len(triangles)
+    d = (triangles - point) @ normal  # (T, 3) heights above the tangent plane
+    nxt = torch.roll(torch.arange(3), -1)
+    d0, d1 = d, d[:, nxt]
+    v0, v1 = triangles, triangles[:, nxt]
+    crossing = (d0 > 0) != (d1 > 0)
+    s = torch.where(crossing, d0 / torch.where(crossing, d0 - d1, torch.ones_like(d0)), torch.zeros_like(d0))
+    cut = v0 + s[..., None] * (v1 - v0)
+    # Sutherland-Hodgman in fixed slots: [v0, cut01, v1, cut12, v2, cut20], kept in order.
+    candidates = torch.stack([v0, cut], dim=2).reshape(T, 6, 3)
+    valid = torch.stack([d0 > 0, crossing], dim=2).reshape(T, 6)
+    slot = torch.arange(6).expand(T, 6)
+    order = torch.argsort(torch.where(valid, slot, slot + 6), dim=1, stable=True)
+    polygon = torch.gather(candidates, 1, order[..., None].expand(T, 6, 3))
+    count = valid.sum(1, keepdim=True)  # (T, 1) vertices of the clipped polygon, 0 to 4
+    following = torch.gather(polygon, 1, ((slot + 1) % count.clamp(min=1))[..., None].expand(T, 6, 3))
+    R, R_next = polygon - point, following - point
+    cross = torch.linalg.cross(R, R_next)
+    cross_norm = cross.norm(dim=-1)
+    theta = torch.atan2(cross_norm, (R * R_next).sum(-1))
+    edge = (slot < count) & (cross_norm > 0)
+    term = torch.where(edge, theta * (cross @ normal) / torch.where(edge, cross_norm, torch.ones_like(cross_norm)),
+                       torch.zeros_like(theta))
+    return (term.sum(1) / (2 * math.pi)).abs()

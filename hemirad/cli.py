@@ -25,6 +25,13 @@ def _resolution(text: str) -> int:
     return value
 
 
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    return value
+
+
 def _fraction(text: str) -> float:
     value = float(text)
     if not 0.0 <= value < 1.0:
@@ -45,6 +52,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--unshot-fraction", type=_fraction,
                         help="stop when unshot / emitted power falls below this (solver.unshot_fraction)")
     parser.add_argument("--resolution", type=_resolution, help="hemicube resolution (solver.resolution)")
+    refine = parser.add_argument_group("adaptive meshing (override the scene's refine block)")
+    refine.add_argument("--refine", choices=("none", "pattern1", "pattern2"),
+                        help="split pattern: pattern1 (centroid, 1 -> 3), pattern2 (edge midpoints, 1 -> 4)")
+    refine.add_argument("--criterion", choices=("gradient", "receiver", "partial_visibility",
+                                                "neighbor_difference", "uniform"),
+                        help="what decides a split (default gradient, the paper's eq. 7)")
+    refine.add_argument("--threshold", type=_positive_float,
+                        help="split when the criterion's radiosity variation (luminance) exceeds this")
+    scale = refine.add_mutually_exclusive_group()
+    scale.add_argument("--relative", dest="relative", action="store_true", default=None,
+                       help="the threshold is a fraction of the brightest emitter's radiosity (default)")
+    scale.add_argument("--absolute", dest="relative", action="store_false",
+                       help="the threshold is in radiosity units")
+    refine.add_argument("--max-depth", type=_positive_int, help="splits of one initial element, at most")
+    refine.add_argument("--max-elements", type=_positive_int, help="element budget")
     parser.add_argument("-q", "--quiet", action="store_true", help="print nothing but warnings and errors")
     return parser
 
@@ -83,6 +105,9 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     overrides = {"max_shots": args.shots, "unshot_fraction": args.unshot_fraction, "resolution": args.resolution}
     scene.solver = replace(scene.solver, **{k: v for k, v in overrides.items() if v is not None})
+    overrides = {"pattern": args.refine, "criterion": args.criterion, "threshold": args.threshold,
+                 "relative": args.relative, "max_depth": args.max_depth, "max_elements": args.max_elements}
+    scene.refine = replace(scene.refine, **{k: v for k, v in overrides.items() if v is not None})
     name = scene.source.stem if scene.source else str(args.scene)
     output = prepare_output_folder(args.output or Path(f"{name}_out"))  # fail before solving, not after
     say(f"hemirad: solving {scene.source or args.scene} (up to {scene.solver.max_shots} shots, "

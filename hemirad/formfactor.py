@@ -102,10 +102,6 @@ class HemicubeFormFactors:
     """
 
     def __init__(self, corners: torch.Tensor, resolution: int):
-        self.corners = corners
-        cross = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        self.normals = cross / cross.norm(dim=1, keepdim=True)
-        self.centroids = corners.mean(dim=1)
         self.weights = delta_form_factors(resolution)
         flat = corners.reshape(-1, 3)
         diagonal = float((flat.max(0).values - flat.min(0).values).norm())
@@ -114,8 +110,16 @@ class HemicubeFormFactors:
         self.eye_offset = self.near = 1e-6 * diagonal
         self.far = 1.01 * diagonal
         self.hemicube = Hemicube(resolution)
-        self.hemicube.set_geometry(corners)
+        self.set_geometry(corners)
         self.seconds = 0.0
+
+    def set_geometry(self, corners: torch.Tensor) -> None:
+        """Replace the triangles (after refinement); they must stay inside the first ones' bounds."""
+        self.corners = corners
+        cross = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        self.normals = cross / cross.norm(dim=1, keepdim=True)
+        self.centroids = corners.mean(dim=1)
+        self.hemicube.set_geometry(corners)
 
     def close(self) -> None:
         self.hemicube.release()

@@ -34,14 +34,15 @@ import numpy as np
 import yaml
 
 from .errors import SceneError
-from .scene import Box, Camera, FaceOverride, Material, MeshFile, Quad, Room, Scene, SceneObject, SolverOptions
+from .scene import (Box, Camera, FaceOverride, Material, MeshFile, Quad, RefineOptions, Room, Scene, SceneObject,
+                    SolverOptions)
 
 #: Refuse scenes whose estimated initial triangle count exceeds this.
 MAX_TRIANGLES = 5_000_000
 
 SCENES_DIR = Path(__file__).resolve().parent / "scenes"
 
-_TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver")
+_TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver", "refine")
 _MATERIAL_KEYS = ("reflectance", "emission")
 _COMMON_KEYS = ("type", "name", "material", "element_size")
 _OBJECT_KEYS = {
@@ -60,6 +61,9 @@ _FACE_KEYS = ("material", "element_size")
 _TRANSFORM_KEYS = ("translate", "rotate", "scale", "matrix")
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient")
+_REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
+                "interior", "shadow_edges", "view_surface")
+_PATTERNS = ("none", "pattern1", "pattern2")
 
 # What a missing required key should hold, for the error message.
 _REQUIRED_WHAT = {
@@ -318,9 +322,10 @@ class _Reader:
         objects = self.read_objects(top["objects"])
         camera = self.read_camera(top["camera"])
         solver = self.read_solver(top.get("solver", {}))
+        refine = self.read_refine(top.get("refine", {}))
         self.check_light(objects)
         self.check_triangle_budget()
-        return Scene(list(self.materials.values()), objects, camera, solver, source)
+        return Scene(list(self.materials.values()), objects, camera, solver, refine, source)
 
     def read_materials(self, v):
         expected = "a non-empty mapping of material names to {reflectance, emission}"
@@ -562,9 +567,54 @@ class _Reader:
                           "The hemicube's side faces are resolution / 2 pixels high.")
             opts.resolution = r
         if "ambient" in m:
-            if not isinstance(m["ambient"], bool):
-                self.fail("solver.ambient", "true or false", m["ambient"])
-            opts.ambient = m["ambient"]
+            opts.ambient = self.boolean(m["ambient"], "solver.ambient")
+        return opts
+
+    def boolean(self, v, key: str) -> bool:
+        if not isinstance(v, bool):
+            self.fail(key, "true or false", v)
+        return v
+
+    def choice(self, v, key: str, options) -> str:
+        if not isinstance(v, str) or v not in options:
+            close = difflib.get_close_matches(str(v), list(options), n=1)
+            self.fail(key, f"one of {', '.join(options)}", v, f"Did you mean {close[0]!r}?" if close else "")
+        return v
+
+    def read_refine(self, v) -> RefineOptions:
+        from .criteria import CRITERIA  # the registry of criterion names lives with the criteria
+
+        m = self.mapping(v, "refine", "a mapping of refinement options")
+        self.keys(m, "refine", _REFINE_KEYS)
+        opts = RefineOptions()
+        if "pattern" in m:
+            opts.pattern = self.choice(m["pattern"], "refine.pattern", _PATTERNS)
+        if "criterion" in m:
+            opts.criterion = self.choice(m["criterion"], "refine.criterion", tuple(CRITERIA))
+        if "threshold" in m:
+            t = self.number(m["threshold"], "refine.threshold", "a number > 0")
+            if not t > 0:
+                self.fail("refine.threshold", "a number > 0", m["threshold"])
+            opts.threshold = t
+        for key in ("relative", "interior", "shadow_edges"):
+            if key in m:
+                setattr(opts, key, self.boolean(m[key], f"refine.{key}"))
+        if "max_depth" in m:
+            opts.max_depth = self.integer(m["max_depth"], "refine.max_depth", "a whole number from 0 to 16", 0, 16)
+        if "min_area" in m:
+            a = self.number(m["min_area"], "refine.min_area", "a number >= 0 (scene units squared)")
+            if a < 0:
+                self.fail("refine.min_area", "a number >= 0 (scene units squared)", m["min_area"])
+            opts.min_area = a
+        if "max_elements" in m:
+            opts.max_elements = self.integer(m["max_elements"], "refine.max_elements", "a whole number >= 1", 1,
+                                             MAX_TRIANGLES)
+        if "view_surface" in m:
+            if not isinstance(m["view_surface"], str):
+                self.fail("refine.view_surface", "a surface name such as room.floor", m["view_surface"])
+            opts.view_surface = m["view_surface"]
+        if not (opts.interior or opts.shadow_edges):
+            self.fail("refine.interior", "at least one of interior and shadow_edges to be true", False)
         return opts
 
     # --- whole-scene checks ---

@@ -19,9 +19,11 @@ from .errors import HemiradInputError
 from .gl import GLContext
 from .mesh import Mesh
 from .meshing import build_mesh
+from .refine import Refiner
 from .render import render_view
 from .scene import Scene
 from .solver import ProgressiveSolver, ShotReport, ambient_term
+from .split import angle_quality
 
 
 @dataclass
@@ -105,25 +107,34 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None) ->
     meshed = time.perf_counter()
     reflectance = scene.reflectance_table()[mesh.material]
     emission = scene.emission_table()[mesh.material]
-    solver = ProgressiveSolver(mesh, reflectance, emission, options.resolution)
+    refiner = Refiner(scene.refine, emission) if scene.refine.enabled else None
+    solver = ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner)
     try:
         state = solver.run(options.max_shots, options.unshot_fraction, progress)
     finally:
         solver.close()
     solved = time.perf_counter()
-    emitted = solver.emitted_power
+    final = solver.mesh
+    levels = torch.bincount(final.level)
     stats = {
         "scene": str(scene.source) if scene.source else None,
-        "elements": mesh.num_elements,
-        "surfaces": len(mesh.surface_names),
+        "elements": final.num_elements,
+        "initial_elements": mesh.num_elements,
+        "elements_per_level": levels.tolist(),
+        "surfaces": len(final.surface_names),
         "shots": state.shots,
         "unshot_fraction": solver.unshot_fraction,
         "hemicube_resolution": options.resolution,
-        "emitted_power": emitted.tolist(),
+        "refine": {"pattern": scene.refine.pattern, "criterion": scene.refine.criterion,
+                   "threshold": scene.refine.threshold, "relative": scene.refine.relative,
+                   "absolute_threshold": refiner.threshold if refiner else None,
+                   "splits": refiner.splits if refiner else 0},
+        "largest_angle_degrees": angle_quality(final),
+        "emitted_power": solver.emitted_power.tolist(),
         "absorbed_power": state.absorbed.tolist(),
         "escaped_power": state.escaped.tolist(),
         "gl_renderer": GLContext.renderer_name(),
         "seconds": {"mesh": meshed - start, "solve": solved - meshed,
                     "solve_phases": solver.timings()},
     }
-    return Result(scene, mesh, state.radiosity, state.unshot, reflectance, emission, stats)
+    return Result(scene, final, state.radiosity, state.unshot, solver.reflectance, solver.emission, stats)

@@ -103,11 +103,32 @@ class SolverOptions:
 
 
 @dataclass
+class RefineOptions:
+    """Adaptive meshing during the solve (DESIGN §2, §3)."""
+
+    pattern: str = "none"  # none, pattern1 (centroid, 1 -> 3) or pattern2 (midpoints, 1 -> 4)
+    criterion: str = "gradient"  # see hemirad.criteria.CRITERIA
+    threshold: float = 0.05  # luminance of radiosity (a length for the uniform criterion)
+    relative: bool = True  # threshold as a fraction of the brightest emitter's radiosity
+    max_depth: int = 4  # splits of one initial element, at most
+    min_area: float = 0.0  # never make elements smaller than this
+    max_elements: int = 200_000  # element budget; the largest scores are split first
+    interior: bool = True  # gradient terms, for accuracy studies
+    shadow_edges: bool = True
+    view_surface: str | None = None  # surface shown in mesh.png; default: the floor
+
+    @property
+    def enabled(self) -> bool:
+        return self.pattern != "none"
+
+
+@dataclass
 class Scene:
     materials: list[Material]
     objects: list[SceneObject]
     camera: Camera
     solver: SolverOptions = field(default_factory=SolverOptions)
+    refine: RefineOptions = field(default_factory=RefineOptions)
     source: Path | None = None  # the file it was read from
 
     def material_index(self, name: str) -> int:

@@ -12,8 +12,12 @@ from typing import Callable
 
 import torch
 
-from .formfactor import HemicubeFormFactors
+from .criteria import ShotContext
+from .display import luminance
+from .formfactor import HemicubeFormFactors, element_form_factors
+from .gradient import ShotView, form_factor_jacobian
 from .mesh import Mesh
+from .refine import Refiner
 
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
@@ -74,15 +78,20 @@ class ShotReport:
 
 
 class ProgressiveSolver:
-    """Shoots until a shot count or an unshot-energy fraction is reached.
+    """Shoots until a shot count or an unshot-energy fraction is reached, refining the mesh
+    during each shot when given a ``Refiner``.
 
     Args:
-        mesh: the elements.
+        mesh: the initial elements.
         reflectance, emission: (T, 3) per element.
         resolution: hemicube resolution R.
+        refiner: splits receivers during shots (DESIGN §3); None for a fixed mesh.
+    Attributes:
+        mesh, reflectance, emission, areas: current, as refinement changes them.
     """
 
-    def __init__(self, mesh: Mesh, reflectance: torch.Tensor, emission: torch.Tensor, resolution: int):
+    def __init__(self, mesh: Mesh, reflectance: torch.Tensor, emission: torch.Tensor, resolution: int,
+                 refiner: Refiner | None = None):
         self.mesh = mesh
         self.reflectance = reflectance
         self.emission = emission
@@ -90,7 +99,8 @@ class ProgressiveSolver:
         self.state = SolverState(radiosity=emission.clone(), unshot=emission.clone())
         self.emitted_power = (emission * self.areas[:, None]).sum(0)  # (3,)
         self.form_factors = HemicubeFormFactors(mesh.corners, resolution)
-        self.update_seconds = 0.0
+        self.refiner = refiner
+        self.update_seconds = self.gradient_seconds = self.refine_seconds = 0.0
 
     def close(self) -> None:
         self.form_factors.close()
@@ -100,17 +110,62 @@ class ProgressiveSolver:
         unshot_power = (self.state.unshot * self.areas[:, None]).sum()
         return float(unshot_power / self.emitted_power.sum())
 
+    def _form_factors(self, shooter: int) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """F_sj, dF_sj/dc when the refiner reads it (else None), and the eye."""
+        ff = self.form_factors
+        element, front, eye, frame = ff.render(shooter)
+        eye = torch.from_numpy(eye)
+        wanted = self.refiner.jacobian if self.refiner is not None else None
+        if wanted is None:
+            start = time.perf_counter()
+            F = element_form_factors(element, front, ff.weights, self.mesh.num_elements)
+            ff.seconds += time.perf_counter() - start
+            return F, None, eye
+        start = time.perf_counter()
+        view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
+        options = self.refiner.options
+        F, J = form_factor_jacobian(view, ff.normals, ff.centroids,
+                                    interior=options.interior or wanted == "interior",
+                                    shadow_edges=options.shadow_edges and wanted == "full")
+        self.gradient_seconds += time.perf_counter() - start
+        return F, J, eye
+
+    def _split(self, selected: torch.Tensor, shooter: int) -> int:
+        """Split the selected elements; children inherit B and dB. Returns the shooter's new index."""
+        self.mesh, parent = self.refiner.split(self.mesh, selected)
+        self.reflectance, self.emission = self.reflectance[parent], self.emission[parent]
+        self.state.radiosity, self.state.unshot = self.state.radiosity[parent], self.state.unshot[parent]
+        self.areas = self.mesh.areas
+        self.form_factors.set_geometry(self.mesh.corners)
+        return int(torch.nonzero(parent == shooter)[0])
+
     def shoot(self) -> int | None:
-        """One shot from the element with the largest unshot power; None when nothing is left."""
+        """One shot from the element with the largest unshot power; None when nothing is left.
+
+        With a refiner, receivers it selects are split and the shot is redone on the new
+        elements before anything is committed, until no receiver needs splitting.
+        """
         state = self.state
         power = state.unshot * self.areas[:, None]  # (T, 3)
         shooter = int(torch.argmax(power.sum(1)))
         shot_power = power[shooter].clone()
         if float(shot_power.sum()) <= 0.0:
             return None
-        F = self.form_factors.from_element(shooter)
+        while True:
+            F, J, eye = self._form_factors(shooter)
+            start = time.perf_counter()
+            delta = received_radiosity(F, shot_power, self.reflectance, self.areas)
+            if self.refiner is None:
+                break
+            ctx = ShotContext(self.mesh, shooter, eye, self.form_factors.normals[shooter], F, delta,
+                              luminance(self.reflectance * shot_power) / self.areas, J)
+            selected = self.refiner.select(ctx)
+            if not bool(selected.any()):
+                self.refine_seconds += time.perf_counter() - start
+                break
+            shooter = self._split(selected, shooter)
+            self.refine_seconds += time.perf_counter() - start
         start = time.perf_counter()
-        delta = received_radiosity(F, shot_power, self.reflectance, self.areas)
         state.radiosity += delta
         state.unshot += delta
         state.unshot[shooter] = 0.0
@@ -133,4 +188,5 @@ class ProgressiveSolver:
         return self.state
 
     def timings(self) -> dict[str, float]:
-        return {**self.form_factors.timings(), "update": self.update_seconds}
+        return {**self.form_factors.timings(), "gradient": self.gradient_seconds,
+                "refine": self.refine_seconds, "update": self.update_seconds}

@@ -45,7 +45,7 @@ def test_cli_writes_stats_and_reports_progress(solved):
     out, run = solved
     stats = json.loads((out / "stats.json").read_text())
     assert stats["shots"] == 40 and 0 < stats["unshot_fraction"] < 1
-    assert set(stats["seconds"]["solve_phases"]) == {"raster", "readback", "form_factors", "update"}
+    assert set(stats["seconds"]["solve_phases"]) == {"raster", "readback", "form_factors", "gradient", "refine", "update"}
     emitted, absorbed, escaped = (np.array(stats[k]) for k in ("emitted_power", "absorbed_power", "escaped_power"))
     unshot = stats["unshot_fraction"] * emitted.sum()
     # A closed room: what was emitted is absorbed, still unshot, or fell on a back face.

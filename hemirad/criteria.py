@@ -1,0 +1,112 @@
+"""Refinement criteria: per receiver, how wrong one shot's constant-per-element answer is.
+
+Every criterion scores all elements at once from what a shot computed (``ShotContext``) and
+returns a (T,) tensor; the refiner splits the elements whose score exceeds the threshold.
+Scores are luminances of radiosity (Rec. 709 weights over RGB), except ``uniform``'s,
+which is an edge length.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+from .analytic import point_to_triangles
+from .display import luminance
+from .mesh import Mesh
+
+
+@dataclass
+class ShotContext:
+    """One shot, before it is committed.
+
+    Attributes:
+        mesh: the current mesh (T elements).
+        shooter: index of the shooting element.
+        eye: (3,) the hemicube's centre; normal: (3,) the shooter's normal.
+        form_factors: (T,) F_sj.
+        received: (T, 3) the radiosity this shot gives each element.
+        luminance_per_form_factor: (T,) d(luminance of received)/dF_sj.
+        jacobian: (T, 3) dF_sj/dc (interior and/or shadow-edge terms), when the criterion needs it.
+    """
+
+    mesh: Mesh
+    shooter: int
+    eye: torch.Tensor
+    normal: torch.Tensor
+    form_factors: torch.Tensor
+    received: torch.Tensor
+    luminance_per_form_factor: torch.Tensor
+    jacobian: torch.Tensor | None = None
+
+
+def gradient_score(ctx: ShotContext) -> torch.Tensor:
+    """The paper's eq. 7: max over the shooter's vertices P_k of |grad B_j . (P_k - G)|.
+
+    The first-order change of what receiver j gets had the shooter's energy left from one
+    of its corners instead of its centroid: large where a point source is a poor stand-in.
+    """
+    grad = ctx.luminance_per_form_factor[:, None] * ctx.jacobian  # (T, 3)
+    offsets = ctx.mesh.corners[ctx.shooter] - ctx.mesh.corners[ctx.shooter].mean(0)  # (3, 3)
+    return (grad @ offsets.T).abs().amax(dim=1)
+
+
+def receiver_score(ctx: ShotContext) -> torch.Tensor:
+    """The first-order variation of received radiosity across each receiver itself.
+
+    Translating the receiver by t changes the frozen-visibility kernel as translating the
+    shooter by -t does, so its gradient is minus the interior Jacobian; it is dotted with
+    the receiver's own vertex offsets.
+    """
+    grad = -ctx.luminance_per_form_factor[:, None] * ctx.jacobian  # (T, 3)
+    corners = ctx.mesh.corners
+    offsets = corners - corners.mean(dim=1, keepdim=True)  # (T, 3, 3)
+    return torch.einsum("tc,tkc->tk", grad, offsets).abs().amax(dim=1)
+
+
+def partial_visibility_score(ctx: ShotContext) -> torch.Tensor:
+    """Radiosity a partly visible receiver misses: (unoccluded F - hemicube F) in luminance.
+
+    Zero for receivers the shooter does not see at all; these are not on a shadow edge
+    (or are wholly inside a shadow, where a finer mesh would not help).
+    """
+    unoccluded = point_to_triangles(ctx.eye, ctx.normal, ctx.mesh.corners)
+    missing = (unoccluded - ctx.form_factors).clamp(min=0)
+    return torch.where(ctx.form_factors > 0, ctx.luminance_per_form_factor * missing, torch.zeros_like(missing))
+
+
+def neighbor_difference_score(ctx: ShotContext) -> torch.Tensor:
+    """The classic baseline: the largest difference in received luminance to any element
+    sharing a vertex (vertices are shared within a surface only)."""
+    value = luminance(ctx.received)  # (T,)
+    triangles = ctx.mesh.triangles
+    V = len(ctx.mesh.vertices)
+    spread = value[:, None].expand(-1, 3).reshape(-1)
+    at = triangles.reshape(-1)
+    high = torch.full((V,), -torch.inf, dtype=value.dtype).scatter_reduce(0, at, spread, "amax")
+    low = torch.full((V,), torch.inf, dtype=value.dtype).scatter_reduce(0, at, spread, "amin")
+    return torch.maximum(high[triangles] - value[:, None], value[:, None] - low[triangles]).amax(dim=1)
+
+
+def uniform_score(ctx: ShotContext) -> torch.Tensor:
+    """Each element's longest edge: with the threshold as a target size, splits everything
+    down to it (the brute-force reference)."""
+    corners = ctx.mesh.corners
+    return (corners - corners.roll(1, dims=1)).norm(dim=-1).amax(dim=1)
+
+
+@dataclass(frozen=True)
+class Criterion:
+    score: Callable[[ShotContext], torch.Tensor]
+    jacobian: str | None  # "full", "interior" or None: which form-factor gradient it reads
+    radiosity_units: bool = True  # False: the threshold is a length
+
+
+CRITERIA: dict[str, Criterion] = {
+    "gradient": Criterion(gradient_score, "full"),
+    "receiver": Criterion(receiver_score, "interior"),
+    "partial_visibility": Criterion(partial_visibility_score, None),
+    "neighbor_difference": Criterion(neighbor_difference_score, None),
+    "uniform": Criterion(uniform_score, None, radiosity_units=False),
+}

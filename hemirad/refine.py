@@ -1,0 +1,58 @@
+"""The refinement scheduler: which receivers of a shot to split, within the bounds."""
+from __future__ import annotations
+
+import torch
+
+from .criteria import CRITERIA, ShotContext
+from .display import luminance
+from .mesh import Mesh
+from .scene import RefineOptions
+from .split import split_triangles
+
+CHILDREN = {"pattern1": 3, "pattern2": 4}
+
+
+class Refiner:
+    """Chooses the elements to split during a shot and splits them.
+
+    Args:
+        options: the scene's refine block.
+        emission: (T, 3) per-element emission, for a threshold relative to the brightest emitter.
+    """
+
+    def __init__(self, options: RefineOptions, emission: torch.Tensor):
+        if options.pattern not in CHILDREN:
+            raise ValueError(f"unknown split pattern {options.pattern!r}")
+        self.options = options
+        self.criterion = CRITERIA[options.criterion]
+        self.threshold = options.threshold
+        if options.relative and self.criterion.radiosity_units:
+            self.threshold *= float(luminance(emission).max())
+        self.children = CHILDREN[options.pattern]
+        self.splits = 0
+
+    @property
+    def jacobian(self) -> str | None:
+        """Which form-factor gradient the criterion needs: "full", "interior" or None."""
+        return self.criterion.jacobian
+
+    def select(self, ctx: ShotContext) -> torch.Tensor:
+        """(T,) bool: receivers over the threshold that may still be split, largest first
+        when the element budget binds (the budget is never exceeded)."""
+        mesh, o = ctx.mesh, self.options
+        score = self.criterion.score(ctx)
+        eligible = (score > self.threshold) & (mesh.level < o.max_depth)
+        eligible &= mesh.areas / self.children >= o.min_area
+        eligible[ctx.shooter] = False  # its own hemicube is being used
+        room = (o.max_elements - mesh.num_elements) // (self.children - 1)
+        if int(eligible.sum()) > room:
+            candidates = torch.nonzero(eligible).reshape(-1)
+            # stable sort: ties keep index order, so the choice is deterministic
+            order = torch.argsort(score[candidates], descending=True, stable=True)
+            eligible = torch.zeros_like(eligible)
+            eligible[candidates[order[:max(room, 0)]]] = True
+        return eligible
+
+    def split(self, mesh: Mesh, selected: torch.Tensor) -> tuple[Mesh, torch.Tensor]:
+        self.splits += int(selected.sum())
+        return split_triangles(mesh, selected, self.options.pattern)
