@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     say(f"hemirad: {stats['elements']} elements, {stats['shots']} shots, unshot fraction "
         f"{stats['unshot_fraction']:.3g}, {time.perf_counter() - start:.1f} s")
     for kind, path in paths.items():
-        say(f"  {kind:6s} {path}")
+        say(f"  {kind:9s} {path}")
     return 0
 
 

@@ -19,6 +19,7 @@ from .errors import HemiradInputError
 from .gl import GLContext
 from .mesh import Mesh
 from .meshing import build_mesh
+from .meshview import pick_surface, surface_view
 from .refine import Refiner
 from .render import render_view
 from .scene import Scene
@@ -59,8 +60,9 @@ class Result:
         return self.radiosity + self.reflectance * self.ambient
 
     def vertex_radiosity(self) -> torch.Tensor:
-        """(V, 3) display radiosity at the vertices (area-weighted, within each surface)."""
-        return display.vertex_values(self.mesh, self.display_radiosity)
+        """(V, 3) display radiosity at the vertices: area-weighted within each surface, and at
+        T-vertices interpolated along the unsplit edge they lie on, so shading has no seams."""
+        return display.conforming_vertex_values(self.mesh, display.vertex_values(self.mesh, self.display_radiosity))
 
     def exposure(self) -> float:
         if self.scene.camera.exposure is not None:
@@ -70,15 +72,26 @@ class Result:
 
     def image(self) -> np.ndarray:
         """(height, width, 3) uint8 sRGB camera view."""
-        linear = render_view(self.mesh, self.vertex_radiosity(), self.scene.camera)
+        linear = render_view(self.mesh, self.vertex_radiosity(), self.scene.camera,
+                             triangles=display.conforming_triangles(self.mesh))
+        return display.to_srgb8(linear, self.exposure())
+
+    def mesh_image(self, surface: str | None = None, size: int = 512) -> np.ndarray:
+        """(H, W, 3) uint8: one surface seen straight on, its elements shaded and outlined
+        (the paper's (a)'(b)'(c)' pictures). ``surface``: a name such as ``room.floor``;
+        default the scene's ``refine.view_surface``, else the floor."""
+        index = pick_surface(self.mesh, surface or self.scene.refine.view_surface)
+        linear = surface_view(self.mesh, self.vertex_radiosity(), index, size=size)
         return display.to_srgb8(linear, self.exposure())
 
     def write(self, folder) -> dict[str, Path]:
-        """Write image.png, mesh.ply and stats.json into ``folder``; returns their paths."""
+        """Write image.png, mesh.png, mesh.ply and stats.json into ``folder``; returns their paths."""
         folder = prepare_output_folder(folder)
-        paths = {"image": folder / "image.png", "mesh": folder / "mesh.ply", "stats": folder / "stats.json"}
+        paths = {"image": folder / "image.png", "mesh view": folder / "mesh.png",
+                 "mesh": folder / "mesh.ply", "stats": folder / "stats.json"}
         start = time.perf_counter()
         export.write_png(paths["image"], self.image())
+        export.write_png(paths["mesh view"], self.mesh_image())
         rendered = time.perf_counter()
         vertex = self.vertex_radiosity()
         export.write_ply(paths["mesh"], self.mesh, vertex, display.to_srgb8(vertex.numpy(), self.exposure()))

@@ -82,6 +82,17 @@ def perspective(fov_y_degrees: float, aspect: float, near: float, far: float) ->
     ])
 
 
+def orthographic(left: float, right: float, bottom: float, top: float, near: float, far: float) -> np.ndarray:
+    """(4, 4) float64 OpenGL parallel projection (glOrtho): the eye-space box
+    [left, right] x [bottom, top] x [-far, -near] to the clip cube, row-major."""
+    return np.array([
+        [2.0 / (right - left), 0.0, 0.0, -(right + left) / (right - left)],
+        [0.0, 2.0 / (top - bottom), 0.0, -(top + bottom) / (top - bottom)],
+        [0.0, 0.0, -2.0 / (far - near), -(far + near) / (far - near)],
+        [0.0, 0.0, 0.0, 1.0],
+    ])
+
+
 def _point_triangle_distance(point: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
     """Euclidean distance from one point (3,) to each triangle (T, 3, 3); returns (T,).
 
@@ -131,7 +142,7 @@ def depth_range(mesh: Mesh, camera: Camera) -> tuple[float, float] | None:
     return min(near, far * 0.5), far
 
 
-def render_view(mesh: Mesh, vertex_colors, camera: Camera) -> np.ndarray:
+def render_view(mesh: Mesh, vertex_colors, camera: Camera, triangles=None) -> np.ndarray:
     """Render the mesh with Gouraud-interpolated vertex colours from the camera.
 
     Depth-tested, both faces drawn, black background, box-filtered supersampling.
@@ -140,6 +151,9 @@ def render_view(mesh: Mesh, vertex_colors, camera: Camera) -> np.ndarray:
         mesh: the mesh to draw.
         vertex_colors: (V, 3) linear values per vertex (torch or numpy).
         camera: position, look_at, up, vertical fov, width, height, supersample.
+        triangles: (T'', 3) int64 indices into ``mesh.vertices`` to draw instead of
+            ``mesh.triangles``, e.g. ``display.conforming_triangles(mesh)`` for a mesh with
+            T-vertices; None draws the elements themselves.
 
     Returns:
         (height, width, 3) float32 linear values, first row at the top of the image.
@@ -161,7 +175,8 @@ def render_view(mesh: Mesh, vertex_colors, camera: Camera) -> np.ndarray:
             f"framebuffer limit of {limit} pixels; lower camera.supersample or the size.")
 
     image = np.zeros((height, width, 3), dtype=np.float32)
-    if mesh.num_elements == 0:
+    draw = mesh.triangles if triangles is None else torch.as_tensor(triangles, dtype=torch.int64).reshape(-1, 3)
+    if mesh.num_elements == 0 or len(draw) == 0:
         return image
     clip = depth_range(mesh, camera)
     if clip is None:
@@ -172,7 +187,7 @@ def render_view(mesh: Mesh, vertex_colors, camera: Camera) -> np.ndarray:
     # the origin would otherwise lose precision in the GPU's model-view transform.
     eye = np.asarray(camera.position, dtype=np.float64)
     positions = ((mesh.vertices.detach().cpu().numpy() - eye) @ basis.T).astype(np.float32)
-    indices = mesh.triangles.detach().cpu().numpy().astype(np.int32)
+    indices = draw.detach().cpu().numpy().astype(np.int32)
     projection = perspective(camera.fov, width / height, *clip)
 
     program = _program(ctx)

@@ -108,7 +108,7 @@ class RefineOptions:
 
     pattern: str = "none"  # none, pattern1 (centroid, 1 -> 3) or pattern2 (midpoints, 1 -> 4)
     criterion: str = "gradient"  # see hemirad.criteria.CRITERIA
-    threshold: float = 0.05  # luminance of radiosity (a length for the uniform criterion)
+    threshold: float = 3e-4  # luminance of radiosity per shot (a length for the uniform criterion)
     relative: bool = True  # threshold as a fraction of the brightest emitter's radiosity
     max_depth: int = 4  # splits of one initial element, at most
     min_area: float = 0.0  # never make elements smaller than this

@@ -1,0 +1,221 @@
+"""Mesh views: one surface seen straight on, shaded, with its element edges drawn over it.
+
+These are the paper's (a)' (b)' (c)' pictures (the floor's mesh after each refinement
+pattern). The view is a parallel projection along the surface's mean normal, framed on the
+surface's bounding rectangle, so elements keep their true shapes and relative sizes.
+"""
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+import torch
+
+from .display import conforming_triangles
+from .errors import HemiradInputError
+from .gl import GLContext
+from .mesh import Mesh
+from .render import _program, orthographic
+
+# Below this length of world +y projected onto the surface, the surface faces up or down
+# and +y no longer gives a stable image "up"; -z is used instead.
+_UP_FALLBACK = 0.1
+
+
+def _surface_areas(mesh: Mesh) -> torch.Tensor:
+    count = int(mesh.surface.max()) + 1 if mesh.num_elements else 0
+    count = max(count, len(mesh.surface_names))
+    return torch.zeros(count, dtype=torch.float64).index_add_(0, mesh.surface, mesh.areas)
+
+
+def pick_surface(mesh: Mesh, name: str | None = None) -> int:
+    """The index of a surface, chosen by name.
+
+    Args:
+        mesh: the mesh with its ``surface_names``.
+        name: an exact surface name (``"room.floor"``); else the unique surface whose name
+            ends with ``"." + name`` (``"floor"`` finds ``"room.floor"``); None picks the
+            largest surface named ``*.floor``, and the largest surface of all if none is.
+
+    Raises:
+        HemiradInputError: no surface matches, or a suffix matches several; the message
+            lists the names there are.
+    """
+    names = list(mesh.surface_names)
+    areas = _surface_areas(mesh)
+    if len(areas) == 0:
+        raise HemiradInputError("the mesh has no surfaces to show.")
+
+    def largest(candidates: list[int]) -> int:
+        return max(candidates, key=lambda i: (float(areas[i]), -i))
+
+    if name is None:
+        floors = [i for i, n in enumerate(names) if n.endswith(".floor") or n == "floor"]
+        return largest(floors) if floors else largest(list(range(len(areas))))
+    if name in names:
+        return names.index(name)
+    matches = [i for i, n in enumerate(names) if n.endswith("." + name)]
+    if len(matches) == 1:
+        return matches[0]
+    available = ", ".join(names) if names else "(none)"
+    if matches:
+        raise HemiradInputError(
+            f"surface name {name!r} is ambiguous: it matches {', '.join(names[i] for i in matches)}. "
+            f"Give the full name; the surfaces are: {available}.")
+    raise HemiradInputError(f"no surface named {name!r}; the surfaces are: {available}.")
+
+
+def view_basis(normal: np.ndarray) -> np.ndarray:
+    """(3, 3) rows right, up, normal for looking at a surface's front along -normal.
+
+    Image up is world +y projected onto the surface (walls appear upright). A surface
+    facing up or down (floor, ceiling) has no such direction; it uses -z instead, so a
+    floor seen from above has +x to the right and -z at the top, as the floor appears
+    to a camera looking towards -z.
+    """
+    n = np.asarray(normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    up = np.array([0.0, 1.0, 0.0]) - n[1] * n
+    if np.linalg.norm(up) < _UP_FALLBACK:
+        up = np.array([0.0, 0.0, -1.0]) - (-n[2]) * n
+    up /= np.linalg.norm(up)
+    right = np.cross(up, n)  # right x up = normal: a right-handed eye frame facing -normal
+    return np.stack([right, up, n])
+
+
+def _unique_edges(triangles: torch.Tensor) -> np.ndarray:
+    """(E, 2) int32 undirected edges of (T, 3) triangles."""
+    a = triangles.reshape(-1)
+    b = triangles[:, [1, 2, 0]].reshape(-1)
+    pairs = torch.stack([torch.minimum(a, b), torch.maximum(a, b)], dim=1)
+    return torch.unique(pairs, dim=0).numpy().astype(np.int32)
+
+
+def surface_view(mesh: Mesh, vertex_colors, surface: int | list[int], size: int = 512,
+                 edges: bool = True, edge_color=(0.0, 0.0, 0.0),
+                 background=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Draw one surface (or several) straight on, Gouraud-shaded, with its element edges.
+
+    The projection is parallel, along the area-weighted mean normal of the chosen
+    triangles, looking at their front; the image is framed on their bounding rectangle in
+    that view, keeping the aspect ratio, with the longer side ``size`` pixels. Orientation
+    is ``view_basis``'s: image up is world +y on walls and -z on floors and ceilings
+    (seen from above, a floor has +x right and -z up). Only the chosen surfaces are drawn;
+    T-vertices are closed with ``conforming_triangles``. Edges are the elements' own
+    (from ``mesh.triangles``), one pixel wide, drawn over the fill slightly towards the
+    viewer. The line pass is framed half a pixel inside the fill's frame so that the
+    outline falls on the outermost pixel rows and columns instead of off the image.
+
+    Args:
+        mesh: the mesh.
+        vertex_colors: (V, 3) linear colour per vertex (torch or numpy), e.g.
+            ``conforming_vertex_values(mesh, vertex_values(mesh, radiosity))``.
+        surface: a surface index or a list of them (see ``pick_surface``).
+        size: pixels along the longer side of the image.
+        edges: draw element edges.
+        edge_color: linear RGB of the edges.
+        background: linear RGB where no chosen surface covers a pixel.
+
+    Returns:
+        (H, W, 3) float32 linear values, first row at the top of the image.
+    """
+    colors = vertex_colors.detach().cpu().numpy() if isinstance(vertex_colors, torch.Tensor) else np.asarray(vertex_colors)
+    colors = np.ascontiguousarray(colors, dtype=np.float32).reshape(-1, 3)
+    if len(colors) != len(mesh.vertices):
+        raise ValueError(f"need one colour per vertex ({len(mesh.vertices)}), got {len(colors)}")
+    size = int(size)
+    if size < 1:
+        raise HemiradInputError(f"the view size must be a positive number of pixels, got {size}.")
+    surfaces = [int(surface)] if isinstance(surface, (int, np.integer)) else [int(s) for s in surface]
+    chosen = torch.isin(mesh.surface, torch.tensor(surfaces, dtype=torch.int64))
+    if not bool(chosen.any()):
+        raise HemiradInputError(f"surface {surfaces} has no elements to show.")
+
+    # The chosen part as a mesh of its own over the same vertices, so display triangles
+    # index the same vertex array and colours.
+    part = Mesh(mesh.vertices, mesh.triangles[chosen], mesh.surface[chosen], mesh.material[chosen],
+                list(mesh.surface_names), mesh.level[chosen], mesh.edge_parents)
+    normal_sum = torch.linalg.cross(part.corners[:, 1] - part.corners[:, 0],
+                                    part.corners[:, 2] - part.corners[:, 0]).sum(dim=0).numpy()
+    if not np.linalg.norm(normal_sum) > 0:
+        raise HemiradInputError(f"surface {surfaces} has no area facing any direction; it cannot be shown straight on.")
+    basis = view_basis(normal_sum)
+
+    used = torch.unique(part.triangles).numpy()
+    world = mesh.vertices.numpy()
+    center = world[used].mean(axis=0)
+    # float64 until the upload, relative to the surface's centre (precision far from the origin).
+    eye_space = (world - center) @ basis.T  # (V, 3): right, up, towards the viewer
+    lo, hi = eye_space[used].min(axis=0), eye_space[used].max(axis=0)
+    extent_u, extent_v = hi[0] - lo[0], hi[1] - lo[1]
+    if not (extent_u > 0 and extent_v > 0):
+        raise HemiradInputError(f"surface {surfaces} is seen edge-on along its mean normal; it cannot be shown straight on.")
+    if extent_u >= extent_v:
+        width, height = size, max(1, int(round(size * extent_v / extent_u)))
+    else:
+        width, height = max(1, int(round(size * extent_u / extent_v))), size
+
+    ctx = GLContext.get()
+    limit = int(ctx.info.get("GL_MAX_RENDERBUFFER_SIZE", 4096))
+    if max(width, height) > limit:
+        raise HemiradInputError(f"view size {size} exceeds the OpenGL framebuffer limit of {limit} pixels.")
+
+    # Depth: the surface's own relief plus a margin; edges move half the margin towards the
+    # viewer so they win the depth test on their own surface but stay hidden behind
+    # nearer parts of a curved one.
+    margin = (hi[2] - lo[2]) + 1e-3 * max(extent_u, extent_v)
+    projection = orthographic(lo[0], hi[0], lo[1], hi[1], -(hi[2] + 2 * margin), -(lo[2] - 2 * margin))
+    shrink = np.diag([1.0 - 1.0 / width, 1.0 - 1.0 / height, 1.0, 1.0])
+    line_projection = shrink @ projection
+    fill_positions = eye_space.astype(np.float32)
+    line_positions = (eye_space + np.array([0.0, 0.0, 0.5 * margin])).astype(np.float32)
+    fill_indices = conforming_triangles(part).numpy().astype(np.int32)
+    line_indices = _unique_edges(part.triangles)
+    line_colors = np.broadcast_to(np.asarray(edge_color, dtype=np.float32), colors.shape).copy()
+
+    program = _program(ctx)
+    resources = []
+
+    def keep(resource):
+        resources.append(resource)
+        return resource
+
+    try:
+        color_rb = keep(ctx.renderbuffer((width, height), components=4, dtype="f4"))
+        depth_rb = keep(ctx.depth_renderbuffer((width, height)))
+        fbo = keep(ctx.framebuffer(color_attachments=[color_rb], depth_attachment=depth_rb))
+        fill_vao = keep(ctx.vertex_array(
+            program,
+            [(keep(ctx.buffer(fill_positions.tobytes())), "3f", "in_position"),
+             (keep(ctx.buffer(colors.tobytes())), "3f", "in_color")],
+            index_buffer=keep(ctx.buffer(fill_indices.tobytes())), index_element_size=4))
+        line_vao = keep(ctx.vertex_array(
+            program,
+            [(keep(ctx.buffer(line_positions.tobytes())), "3f", "in_position"),
+             (keep(ctx.buffer(line_colors.tobytes())), "3f", "in_color")],
+            index_buffer=keep(ctx.buffer(line_indices.tobytes())), index_element_size=4))
+        # The scope restores framebuffer and enable flags for the context's other users.
+        scope = keep(ctx.scope(fbo, enable_only=moderngl.DEPTH_TEST))
+        with scope:
+            fbo.viewport = (0, 0, width, height)
+            fbo.clear(*(float(c) for c in background), 1.0, depth=1.0)
+            ctx.depth_func = "<"
+            program["clip_from_eye"].write(projection.T.astype(np.float32).tobytes())
+            fill_vao.render(moderngl.TRIANGLES)
+            if edges and len(line_indices):
+                ctx.depth_func = "<="
+                ctx.line_width = 1.0
+                program["clip_from_eye"].write(line_projection.T.astype(np.float32).tobytes())
+                line_vao.render(moderngl.LINES)
+                # GL lines are half-open (the last pixel is left for the next segment), which
+                # leaves gaps at the outline's corners; the end points as 1-pixel points close them.
+                ctx.point_size = 1.0
+                line_vao.render(moderngl.POINTS)
+            raw = fbo.read(components=4, dtype="f4")
+    finally:
+        ctx.depth_func = "<"  # the GL default, which the other passes rely on
+        for resource in reversed(resources):
+            resource.release()
+
+    # glReadPixels returns the bottom row first.
+    image = np.frombuffer(raw, dtype=np.float32).reshape(height, width, 4)[::-1, :, :3]
+    return np.ascontiguousarray(image)

@@ -1,0 +1,198 @@
+"""Element subdivision: the two split patterns of Hasebe & Makino, and mesh-shape quality.
+
+Pattern 1 (centroid, 1 -> 3) adds one vertex inside the triangle, so neighbours are never
+affected and the mesh stays conforming, but every generation makes the children thinner:
+repeated splitting drives the largest interior angle towards 180 degrees.
+
+Pattern 2 (edge midpoints, 1 -> 4) makes four children similar to the parent, so shape
+quality never degrades, at the price of T-vertices on unsplit neighbours (see
+``display.conforming_vertex_values`` and ``display.conforming_triangles``). Midpoints are
+shared: two triangles split in the same call get one vertex on their common edge, and a
+triangle split later reuses the vertex its neighbour made earlier, found through
+``Mesh.edge_parents``.
+
+Everything here is pure and vectorised over elements: it returns a new Mesh and never
+modifies its input.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .mesh import Mesh
+
+PATTERNS = ("pattern1", "pattern2")
+
+
+def _edge_keys(a: torch.Tensor, b: torch.Tensor, num_vertices: int) -> torch.Tensor:
+    """One int64 key per undirected edge: ``min * V + max``. Exact for V < 3e9."""
+    lo, hi = torch.minimum(a, b), torch.maximum(a, b)
+    return lo * num_vertices + hi
+
+
+def midpoint_lookup(mesh: Mesh):
+    """A vectorised map from undirected edges to the midpoint vertex splitting made on them.
+
+    Returns:
+        A function ``find(a, b) -> (N,) int64`` taking two (N,) int64 tensors of vertex
+        indices (in either order) and giving, for each pair, the vertex whose
+        ``edge_parents`` is that pair, or -1 where the edge has never been split.
+    """
+    num_vertices = len(mesh.vertices)
+    parents = mesh.edge_parents
+    is_mid = parents[:, 0] >= 0
+    mid_index = torch.nonzero(is_mid).reshape(-1)
+    keys = _edge_keys(parents[mid_index, 0], parents[mid_index, 1], num_vertices)
+    keys, order = torch.sort(keys)
+    mid_index = mid_index[order]
+
+    def find(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        query = _edge_keys(a, b, num_vertices)
+        if len(keys) == 0:
+            return torch.full_like(query, -1)
+        pos = torch.searchsorted(keys, query).clamp_max(len(keys) - 1)
+        return torch.where(keys[pos] == query, mid_index[pos], torch.full_like(query, -1))
+
+    return find
+
+
+def _split_pattern1(mesh: Mesh, chosen: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Centroid split of the triangles ``chosen`` (n,) -> new vertices (n, 3), their
+    edge_parents (n, 2) and the children (3n, 3), grouped by parent."""
+    tri = mesh.triangles[chosen]  # (n, 3)
+    n = len(tri)
+    new_vertices = mesh.vertices[tri].mean(dim=1)
+    c = len(mesh.vertices) + torch.arange(n, dtype=torch.int64)
+    v0, v1, v2 = tri.unbind(dim=1)
+    # Each child keeps one parent edge and replaces the opposite corner by the centroid,
+    # so it is wound like the parent.
+    children = torch.stack([
+        torch.stack([v0, v1, c], dim=1),
+        torch.stack([v1, v2, c], dim=1),
+        torch.stack([v2, v0, c], dim=1),
+    ], dim=1).reshape(-1, 3)
+    # The centroid lies on no edge: it can never be a T-vertex.
+    new_parents = torch.full((n, 2), -1, dtype=torch.int64)
+    return new_vertices, new_parents, children
+
+
+def _split_pattern2(mesh: Mesh, chosen: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Midpoint split of the triangles ``chosen`` (n,) -> new vertices (k, 3), their
+    edge_parents (k, 2) and the children (4n, 3), grouped by parent."""
+    num_vertices = len(mesh.vertices)
+    tri = mesh.triangles[chosen]  # (n, 3)
+    n = len(tri)
+    # Edge e of a triangle runs from corner e to corner e + 1: (v0 v1), (v1 v2), (v2 v0).
+    start = tri.reshape(-1)  # (3n,)
+    end = tri[:, [1, 2, 0]].reshape(-1)
+    lo, hi = torch.minimum(start, end), torch.maximum(start, end)
+
+    # One entry per distinct edge among the chosen triangles: an edge shared by two chosen
+    # triangles gets a single midpoint. torch.unique sorts, so new vertices come out in a
+    # deterministic order (by their sorted end vertices).
+    keys = lo * num_vertices + hi
+    unique_keys, inverse = torch.unique(keys, sorted=True, return_inverse=True)
+    unique_lo = unique_keys // num_vertices
+    unique_hi = unique_keys % num_vertices
+
+    # Reuse a midpoint an earlier split made on the same edge (the neighbour was split
+    # before); only the rest get new vertices.
+    existing = midpoint_lookup(mesh)(unique_lo, unique_hi)
+    missing = existing < 0
+    num_new = int(missing.sum())
+    new_index = num_vertices + torch.arange(num_new, dtype=torch.int64)
+    mid_of_unique = existing.clone()
+    mid_of_unique[missing] = new_index
+    a, b = unique_lo[missing], unique_hi[missing]
+    new_vertices = 0.5 * (mesh.vertices[a] + mesh.vertices[b])
+    new_parents = torch.stack([a, b], dim=1)
+
+    m = mid_of_unique[inverse].reshape(n, 3)  # (n, 3): m01, m12, m20
+    m01, m12, m20 = m.unbind(dim=1)
+    v0, v1, v2 = tri.unbind(dim=1)
+    # Three corner children and the central one (rotated by 180 degrees); all four are
+    # similar to the parent and wound like it.
+    children = torch.stack([
+        torch.stack([v0, m01, m20], dim=1),
+        torch.stack([m01, v1, m12], dim=1),
+        torch.stack([m20, m12, v2], dim=1),
+        torch.stack([m01, m12, m20], dim=1),
+    ], dim=1).reshape(-1, 3)
+    return new_vertices, new_parents, children
+
+
+def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[Mesh, torch.Tensor]:
+    """Split the selected triangles with one of the paper's two patterns.
+
+    Args:
+        mesh: the mesh; not modified.
+        selected: (T,) bool, the triangles to split.
+        pattern: ``"pattern1"`` (centroid, 1 -> 3 children (v0 v1 c), (v1 v2 c), (v2 v0 c))
+            or ``"pattern2"`` (edge midpoints, 1 -> 4 children (v0 m01 m20),
+            (m01 v1 m12), (m20 m12 v2), (m01 m12 m20)).
+
+    Returns:
+        mesh: the new mesh. Its vertices are the old ones (same indices) followed by the
+            new ones; its triangles are the unsplit triangles in their old order, then the
+            children grouped by parent in the order of the parents. Children inherit
+            surface and material, get ``level + 1`` and keep the parent's winding.
+        parent: (T',) int64, for each new triangle the index of the old triangle it lies in
+            (itself when unsplit). ``values[parent]`` carries per-element quantities such as
+            radiosity over: value per unit area is unchanged, so power is conserved.
+    """
+    if pattern not in PATTERNS:
+        raise ValueError(f"unknown split pattern {pattern!r}; expected one of {', '.join(PATTERNS)}")
+    selected = torch.as_tensor(selected, dtype=torch.bool).reshape(-1)
+    if len(selected) != mesh.num_elements:
+        raise ValueError(f"need one flag per element ({mesh.num_elements}), got {len(selected)}")
+
+    chosen = torch.nonzero(selected).reshape(-1)
+    kept = torch.nonzero(~selected).reshape(-1)
+    if pattern == "pattern1":
+        new_vertices, new_parents, children = _split_pattern1(mesh, chosen)
+        per_parent = 3
+    else:
+        new_vertices, new_parents, children = _split_pattern2(mesh, chosen)
+        per_parent = 4
+
+    parent = torch.cat([kept, chosen.repeat_interleave(per_parent)])
+    level = torch.cat([mesh.level[kept], (mesh.level[chosen] + 1).repeat_interleave(per_parent)])
+    out = Mesh(
+        vertices=torch.cat([mesh.vertices, new_vertices.to(mesh.vertices.dtype)]),
+        triangles=torch.cat([mesh.triangles[kept], children]),
+        surface=mesh.surface[parent],
+        material=mesh.material[parent],
+        surface_names=list(mesh.surface_names),
+        level=level,
+        edge_parents=torch.cat([mesh.edge_parents, new_parents]),
+    )
+    return out, parent
+
+
+def largest_angles(mesh: Mesh) -> torch.Tensor:
+    """(T,) float64 the largest interior angle of each triangle, in degrees.
+
+    Angles come from atan2(|cross|, dot), which stays accurate near 0 and 180 degrees
+    where acos of a normalised dot product loses half its digits.
+    """
+    c = mesh.corners  # (T, 3, 3)
+    # At corner i the two sides run to corners i + 1 and i + 2.
+    to_next = c[:, [1, 2, 0]] - c
+    to_prev = c[:, [2, 0, 1]] - c
+    sin_part = torch.linalg.cross(to_next, to_prev, dim=-1).norm(dim=-1)
+    cos_part = (to_next * to_prev).sum(dim=-1)
+    angles = torch.atan2(sin_part, cos_part)  # (T, 3), radians, summing to pi
+    return angles.amax(dim=1) * (180.0 / math.pi)
+
+
+def angle_quality(mesh: Mesh) -> dict[str, float]:
+    """Mean and population variance (degrees, degrees^2) of each element's largest angle.
+
+    This is the paper's mesh-quality measure: 60 degrees and variance 0 for a mesh of
+    equilateral triangles; slivers push the mean towards 180 and inflate the variance.
+    """
+    angles = largest_angles(mesh)
+    if len(angles) == 0:
+        return {"mean": float("nan"), "variance": float("nan")}
+    return {"mean": float(angles.mean()), "variance": float(angles.var(correction=0))}
