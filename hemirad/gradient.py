@@ -17,6 +17,7 @@ bottom-up mode), with no Python loop over elements or pixels.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -25,6 +26,11 @@ from torch.func import jacfwd
 
 from .formfactor import hemicube_directions
 from .hemicube import FACES, face_viewports
+
+# PyTorch's own forward-mode set-up scripts its decompositions on first use and warns that
+# torch.jit.script is deprecated: nothing a user of hemirad can act on.
+warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*deprecated", category=FutureWarning,
+                        module=r"torch\.jit")
 
 
 @lru_cache(maxsize=8)

@@ -7,7 +7,7 @@ from .criteria import CRITERIA, ShotContext
 from .display import luminance
 from .mesh import Mesh
 from .scene import RefineOptions
-from .split import split_triangles
+from .split import split_triangles, unbalanced
 
 CHILDREN = {"pattern1": 3, "pattern2": 4}
 
@@ -54,5 +54,23 @@ class Refiner:
         return eligible
 
     def split(self, mesh: Mesh, selected: torch.Tensor) -> tuple[Mesh, torch.Tensor]:
-        self.splits += int(selected.sum())
-        return split_triangles(mesh, selected, self.options.pattern)
+        """Split the selected elements and, for pattern 2, then every element left more than one
+        level coarser than a neighbour (2:1 grading), within the element budget.
+
+        Returns:
+            the new mesh, and (T',) the index in ``mesh`` each new element descends from.
+        """
+        parent = torch.arange(mesh.num_elements)
+        while bool(selected.any()):
+            self.splits += int(selected.sum())
+            mesh, step = split_triangles(mesh, selected, self.options.pattern)
+            parent = parent[step]
+            if self.options.pattern != "pattern2":
+                break
+            selected = unbalanced(mesh)
+            room = (self.options.max_elements - mesh.num_elements) // (self.children - 1)
+            if int(selected.sum()) > room:  # the budget wins over grading
+                keep = torch.nonzero(selected).reshape(-1)[:max(room, 0)]
+                selected = torch.zeros_like(selected)
+                selected[keep] = True
+        return mesh, parent

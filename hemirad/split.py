@@ -170,6 +170,24 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
     return out, parent
 
 
+def unbalanced(mesh: Mesh) -> torch.Tensor:
+    """(T,) bool: triangles whose neighbours are more than one level finer across an edge.
+
+    The 2:1 rule of graded meshes: an edge of a leaf may carry one midpoint, but that
+    midpoint's half-edges may not be split again. A leaf that breaks it sits beside a much
+    finer region (typically a shadow edge that crosses it too, just under the threshold);
+    splitting it grades the mesh and keeps T-vertices from nesting.
+    """
+    find = midpoint_lookup(mesh)
+    a = mesh.triangles.reshape(-1)
+    b = mesh.triangles[:, [1, 2, 0]].reshape(-1)
+    m = find(a, b)
+    has = m >= 0
+    m_safe = torch.where(has, m, a)
+    nested = has & ((find(a, m_safe) >= 0) | (find(m_safe, b) >= 0))
+    return nested.reshape(-1, 3).any(dim=1)
+
+
 def largest_angles(mesh: Mesh) -> torch.Tensor:
     """(T,) float64 the largest interior angle of each triangle, in degrees.
 
