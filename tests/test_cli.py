@@ -107,3 +107,25 @@ def test_bad_option_gives_exit_code_2(capsys):
         main([str(DATA / "small_room.yaml"), "--resolution", "7"])
     assert exit_.value.code == 2
     assert "even integer" in capsys.readouterr().err
+
+
+def test_cli_refines_and_writes_the_mesh_view(tmp_path, capsys):
+    assert main([str(DATA / "small_room.yaml"), "-o", str(tmp_path), "-q", "--shots", "10",
+                 "--refine", "pattern2", "--threshold", "1e-3", "--max-depth", "2"]) == 0
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    assert stats["refine"]["pattern"] == "pattern2" and stats["refine"]["splits"] > 0
+    assert len(stats["elements_per_level"]) == 3 and sum(stats["elements_per_level"]) == stats["elements"]
+    assert stats["elements"] > stats["initial_elements"]
+    view = np.asarray(Image.open(tmp_path / "mesh.png"))
+    assert view.ndim == 3 and view.std() > 5
+    mesh = trimesh.load(tmp_path / "mesh.ply", process=False)
+    assert len(mesh.faces) == stats["elements"]
+
+
+def test_refine_block_in_the_scene_file_is_checked(tmp_path, capsys):
+    text = (DATA / "small_room.yaml").read_text() + "\nrefine:\n  pattern: patern2\n"
+    (tmp_path / "tetra.obj").write_bytes((DATA / "tetra.obj").read_bytes())
+    scene = tmp_path / "bad.yaml"
+    scene.write_text(text)
+    err = one_paragraph_error(capsys, [str(scene), "-o", str(tmp_path / "out")])
+    assert "refine.pattern" in err and "pattern2" in err
