@@ -15,6 +15,7 @@ import torch
 from .hemicube import BACK_FACE_BIT, FACES, Hemicube, face_viewports, tangent_frame
 
 
+@lru_cache(maxsize=8)
 def hemicube_directions(resolution: int) -> torch.Tensor:
     """Unnormalised directions through every pixel centre, in the hemicube's local frame.
 
@@ -22,7 +23,7 @@ def hemicube_directions(resolution: int) -> torch.Tensor:
     lies at f + sx r + sy u, on the unit cube around the eye.
 
     Returns:
-        (3R, R, 3) float64.
+        (3R, R, 3) float64; do not modify (cached).
     """
     R = resolution
     out = torch.empty(3 * R, R, 3, dtype=torch.float64)
