@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import time
 import warnings
@@ -11,10 +12,42 @@ from pathlib import Path
 from .errors import HemiradInputError, HemiradWarning
 
 
+def _number(text: str, kind=float):
+    """``kind(text)``, or the one-line complaint argparse shows (its own names the function)."""
+    try:
+        return kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, "
+                                         f"got {text!r}") from None
+
+
 def _positive_int(text: str) -> int:
-    value = int(text)
+    value = _number(text, int)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    value = _number(text, int)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
+    return value
+
+
+def _depth(text: str) -> int:
+    value = _number(text, int)
+    if not 0 <= value <= 16:
+        raise argparse.ArgumentTypeError(f"expected an integer from 0 to 16, got {text}")
+    return value
+
+
+def _element_budget(text: str) -> int:
+    from .loader import MAX_TRIANGLES
+
+    value = _positive_int(text)
+    if value > MAX_TRIANGLES:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_TRIANGLES:,} elements, got {text}")
     return value
 
 
@@ -26,24 +59,31 @@ def _resolution(text: str) -> int:
 
 
 def _positive_float(text: str) -> float:
-    value = float(text)
+    value = _number(text)
     if not value > 0 or value == float("inf"):
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
     return value
 
 
 def _fraction(text: str) -> float:
-    value = float(text)
+    value = _number(text)
     if not 0.0 <= value < 1.0:
         raise argparse.ArgumentTypeError(f"expected a number in [0, 1), got {text}")
     return value
 
 
+class _Parser(argparse.ArgumentParser):
+    """Reports a bad command line as one paragraph, like every other input error, exit code 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}. See '{self.prog} --help'.\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="hemirad",
         description="Solve a scene by progressive-refinement radiosity and write image.png, "
-                    "mesh.ply (per-vertex radiosity) and stats.json.")
+                    "mesh.png, mesh.ply and mesh.glb (per-vertex colour and radiosity) and stats.json.")
     parser.add_argument("scene", help="a scene file (YAML) or the name of a bundled scene "
                                       "(cornell_box, floating)")
     parser.add_argument("-o", "--output", type=Path,
@@ -65,8 +105,14 @@ def build_parser() -> argparse.ArgumentParser:
                        help="the threshold is a fraction of the brightest emitter's radiosity (default)")
     scale.add_argument("--absolute", dest="relative", action="store_false",
                        help="the threshold is in radiosity units")
-    refine.add_argument("--max-depth", type=_positive_int, help="splits of one initial element, at most")
-    refine.add_argument("--max-elements", type=_positive_int, help="element budget")
+    refine.add_argument("--max-depth", type=_depth, help="splits of one initial element, at most (0 to 16)")
+    refine.add_argument("--max-elements", type=_element_budget, help="element budget")
+    runs = parser.add_argument_group("long runs")
+    runs.add_argument("--checkpoint-every", type=_non_negative_int, default=0, metavar="N",
+                      help="write OUT/checkpoint.pt after every N shots, and when the run ends (default 0: never)")
+    runs.add_argument("--resume", action="store_true",
+                      help="continue the run whose OUT/checkpoint.pt is there (same scene and options; "
+                           "--shots may be raised), with the same result as a run never stopped")
     parser.add_argument("-q", "--quiet", action="store_true", help="print nothing but warnings and errors")
     return parser
 
@@ -79,25 +125,38 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
 
 
 class _Progress:
-    """A progress bar of shots with the unshot fraction and element count beside it."""
+    """A progress bar of shots with the unshot fraction and element count beside it.
 
-    def __init__(self, total: int, quiet: bool):
-        self.bar = None
-        if not quiet:
-            from tqdm import tqdm
-            self.bar = tqdm(total=total, unit="shot", file=sys.stderr, dynamic_ncols=True)
+    The header and bar appear at the first shot, so an error found before solving (a
+    checkpoint that does not fit) is printed alone, and a resumed run's bar starts where
+    the checkpoint left off.
+    """
+
+    def __init__(self, total: int, quiet: bool, header: str = ""):
+        self.total, self.quiet, self.header, self.bar = total, quiet, header, None
 
     def __call__(self, report) -> None:
-        if self.bar is not None:
-            self.bar.update(report.shots - self.bar.n)
-            self.bar.set_postfix(unshot=f"{report.unshot_fraction:.2e}", elements=report.elements, refresh=False)
+        if self.quiet:
+            return
+        if self.bar is None:
+            from tqdm import tqdm
+
+            if self.header:
+                print(self.header, file=sys.stderr)
+            self.bar = tqdm(total=self.total, initial=report.shots - 1, unit="shot", file=sys.stderr,
+                            dynamic_ncols=True)
+        self.bar.update(report.shots - self.bar.n)
+        self.bar.set_postfix(unshot=f"{report.unshot_fraction:.2e}", elements=report.elements, refresh=False)
 
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+            self.bar = None
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
+    """Solve and write as ``args`` say; ``argv`` (the command line) is echoed in the resume hint."""
+    from . import checkpoint as checkpoints
     from .loader import load_scene
     from .pipeline import prepare_output_folder, solve
 
@@ -110,28 +169,52 @@ def run(args: argparse.Namespace) -> int:
     scene.refine = replace(scene.refine, **{k: v for k, v in overrides.items() if v is not None})
     name = scene.source.stem if scene.source else str(args.scene)
     output = prepare_output_folder(args.output or Path(f"{name}_out"))  # fail before solving, not after
-    say(f"hemirad: solving {scene.source or args.scene} (up to {scene.solver.max_shots} shots, "
-        f"stop below {scene.solver.unshot_fraction:g} unshot, hemicube {scene.solver.resolution})")
-    progress = _Progress(scene.solver.max_shots, args.quiet)
+    checkpoint = output / checkpoints.FILENAME if (args.checkpoint_every or args.resume) else None
+    # Printed with the first shot: errors found while setting up then stay a single paragraph.
+    header = (f"hemirad: solving {scene.source or args.scene} (up to {scene.solver.max_shots} shots, "
+              f"stop below {scene.solver.unshot_fraction:g} unshot, hemicube {scene.solver.resolution})")
+    progress = _Progress(scene.solver.max_shots, args.quiet, header)
     start = time.perf_counter()
     try:
-        result = solve(scene, progress=progress)
+        result = solve(scene, progress=progress, checkpoint=checkpoint, checkpoint_every=args.checkpoint_every,
+                       resume=args.resume)
+    except KeyboardInterrupt:
+        progress.close()  # before the message, so the bar does not overwrite it
+        print(_interrupted(checkpoint, argv), file=sys.stderr)
+        return 130
     finally:
         progress.close()
     paths = result.write(output)
+    if checkpoint is not None:
+        paths["checkpoint"] = checkpoint
     stats = result.stats
-    say(f"hemirad: {stats['elements']} elements, {stats['shots']} shots, unshot fraction "
+    resumed = f" (resumed at shot {stats['resumed_from_shot']})" if stats.get("resumed_from_shot") is not None else ""
+    say(f"hemirad: {stats['elements']} elements, {stats['shots']} shots{resumed}, unshot fraction "
         f"{stats['unshot_fraction']:.3g}, {time.perf_counter() - start:.1f} s")
     for kind, path in paths.items():
-        say(f"  {kind:9s} {path}")
+        say(f"  {kind:10s} {path}")
     return 0
+
+
+def _interrupted(checkpoint: Path | None, argv: list[str] | None) -> str:
+    """What Ctrl-C leaves behind and, when there is a checkpoint, the command that continues."""
+    from . import checkpoint as checkpoints
+
+    shots = checkpoints.saved_shots(checkpoint) if checkpoint is not None else None
+    if shots is None:
+        return "hemirad: interrupted; nothing was saved (--checkpoint-every N makes a long run resumable)."
+    args = list(sys.argv[1:] if argv is None else argv)
+    if "--resume" not in args:
+        args.append("--resume")
+    return (f"hemirad: interrupted; {checkpoint} holds the run up to shot {shots}. "
+            f"Continue it with: hemirad {shlex.join(args)}")
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     warnings.showwarning = _show_warning
     try:
-        return run(args)
+        return run(args, argv)
     except HemiradInputError as exc:
         print(f"hemirad: error: {exc}", file=sys.stderr)
         return 2

@@ -34,6 +34,7 @@ import numpy as np
 import yaml
 
 from .errors import SceneError
+from .meshing import clean_triangles
 from .scene import (Box, Camera, FaceOverride, Material, MeshFile, Quad, RefineOptions, Room, Scene, SceneObject,
                     SolverOptions)
 
@@ -137,7 +138,13 @@ def load_scene(path_or_name: str | Path) -> Scene:
     """Read a scene from a YAML file, or a bundled scene by name (``"cornell_box"``).
 
     A path that exists is read as a file; otherwise a bundled scene of that name is used.
-    Raises :class:`SceneError` for any problem, naming the key at fault.
+    Imported mesh files are read too (to check them and estimate the element count), but
+    nothing is meshed yet: ``hemirad.solve`` does that.
+
+    Returns:
+        The Scene; its ``solver`` and ``refine`` options may be edited before solving.
+    Raises:
+        SceneError: for any problem, naming the file, the key at fault and what was expected.
     """
     shown = str(path_or_name)
     path = Path(path_or_name)
@@ -206,6 +213,14 @@ def _is_number(v: object) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
+def _is_finite(v: int | float) -> bool:
+    """Finite as a float: YAML integers have no size limit, and past 1e308 none converts."""
+    try:
+        return math.isfinite(v)
+    except OverflowError:
+        return False
+
+
 def _quad_triangle_normals(c: np.ndarray) -> np.ndarray:
     """(4, 3) the doubled normals of the four corner triangles (012, 123, 230, 301) of quad c (4, 3)."""
     i = np.arange(4)
@@ -266,8 +281,8 @@ class _Reader:
         if not _is_number(v):
             hint = "true/false is not a number." if isinstance(v, bool) else ""
             self.fail(key, expected, v, hint)
-        if not math.isfinite(v):
-            self.fail(key, expected, v, "The number must be finite.")
+        if not _is_finite(v):
+            self.fail(key, expected, v, "The number must be finite (and below about 1e308).")
         return float(v)
 
     def integer(self, v, key: str, expected: str, lo: int, hi: int | None = None) -> int:
@@ -290,7 +305,7 @@ class _Reader:
         if not isinstance(v, (list, tuple)) or len(v) != 3 or not all(_is_number(x) for x in v):
             hint = "true/false is not a number." if isinstance(v, bool) else ""
             self.fail(key, expected, v, hint)
-        if not all(math.isfinite(x) and ok(x) for x in v):
+        if not all(_is_finite(x) and ok(x) for x in v):
             self.fail(key, expected, v)
         return tuple(float(x) for x in v)
 
@@ -400,7 +415,7 @@ class _Reader:
         dx, dy, dz = (b - a for a, b in zip(lo, hi))
         areas = (dx * dz, dx * dz, dy * dz, dy * dz, dx * dy, dx * dy)
         for area, (size, size_key) in zip(areas, sizes):
-            self.estimate(2.0 * area / size**2, size, size_key)
+            self.estimate(2.0 * area / size / size, size, size_key)
 
     def read_room(self, spec, key, name, material, size, size_key) -> Room:
         lo, hi = self.min_max(spec, key)
@@ -450,7 +465,7 @@ class _Reader:
         if (normals @ vector_area <= 0).any():
             self.fail(f"{key}.corners", expected, v,
                       "The corners are out of order (a bow-tie) or make a concave shape.")
-        self.estimate(float(np.linalg.norm(vector_area)) / size**2, size, size_key)  # 2 * area / size^2
+        self.estimate(float(np.linalg.norm(vector_area)) / size / size, size, size_key)  # 2 * area / size^2
         return Quad(corners, material, size, name)
 
     def read_mesh(self, spec, key, name, material, size, size_key) -> MeshFile:
@@ -474,7 +489,7 @@ class _Reader:
             if not 0.0 <= crease <= 180.0:
                 self.fail(f"{key}.crease_angle", "an angle in degrees in [0, 180]", spec["crease_angle"])
         area, count = self.mesh_area(path, file, f"{key}.file", transform)
-        self.estimate(2.0 * area / size**2 + count, size, size_key)
+        self.estimate(2.0 * area / size / size + count, size, size_key)
         return MeshFile(path, material, size, tuple(map(tuple, transform.tolist())), crease, name)
 
     def read_transform(self, v, key: str) -> np.ndarray:
@@ -514,14 +529,26 @@ class _Reader:
         try:
             tm = trimesh.load(path, force="mesh", process=False)
         except Exception as exc:  # trimesh raises many kinds; any of them means an unreadable file
-            self.fail(key, "a mesh file trimesh can read", shown, f"Reading it failed: {exc}.")
+            reason = str(exc).strip().rstrip(".!") or type(exc).__name__
+            self.fail(key, "a mesh file trimesh can read", shown, f"Reading it failed: {reason}.")
         faces = np.asarray(getattr(tm, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+        vertices = np.asarray(getattr(tm, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
         if len(faces) == 0:
             self.fail(key, "a mesh file with at least one triangle", shown, "It holds no triangles.")
-        v = np.asarray(tm.vertices, dtype=np.float64) @ transform[:3, :3].T + transform[:3, 3]
-        c = v[faces]
-        doubled = np.linalg.norm(np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]), axis=1)
-        return 0.5 * float(doubled[np.isfinite(doubled)].sum()), len(faces)
+        if faces.min() < 0 or faces.max() >= len(vertices):
+            self.fail(key, "a mesh file whose faces index its own vertices", shown,
+                      f"A face names vertex {int(faces.max()) + 1} (or a negative one); there are {len(vertices)}.")
+        with np.errstate(invalid="ignore", over="ignore"):
+            v = vertices @ transform[:3, :3].T + transform[:3, 3]
+            c = v[faces]
+            doubled = np.linalg.norm(np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]), axis=1)
+        # Meshing drops zero-area and non-finite triangles with a warning (by this same test);
+        # with none left there is nothing to mesh, and that is this key's fault.
+        usable, _ = clean_triangles(v, faces)
+        if not usable.any():
+            self.fail(key, "a mesh file with at least one triangle of non-zero area and finite corners", shown,
+                      f"All {len(faces)} of its triangles are degenerate (zero area) or have NaN/infinite corners.")
+        return 0.5 * float(doubled[usable].sum()), len(faces)
 
     def read_camera(self, v) -> Camera:
         m = self.mapping(v, "camera", _REQUIRED_WHAT["camera"])
@@ -607,8 +634,8 @@ class _Reader:
                 self.fail("refine.min_area", "a number >= 0 (scene units squared)", m["min_area"])
             opts.min_area = a
         if "max_elements" in m:
-            opts.max_elements = self.integer(m["max_elements"], "refine.max_elements", "a whole number >= 1", 1,
-                                             MAX_TRIANGLES)
+            opts.max_elements = self.integer(m["max_elements"], "refine.max_elements",
+                                             f"a whole number from 1 to {MAX_TRIANGLES:,}", 1, MAX_TRIANGLES)
         if "view_surface" in m:
             if not isinstance(m["view_surface"], str):
                 self.fail("refine.view_surface", "a surface name such as room.floor", m["view_surface"])
@@ -647,5 +674,10 @@ class _Reader:
         key = max(by_key, key=by_key.get)
         self.fail(key, f"an element size that keeps the scene under {MAX_TRIANGLES:,} triangles",
                   self.sizes[key],
-                  hint=f"The scene would start with about {total:,.0f} triangles, {by_key[key]:,.0f} of them "
+                  hint=f"The scene would start with about {_count(total)} triangles, {_count(by_key[key])} of them "
                        f"from this element size; make it larger.")
+
+
+def _count(n: float) -> str:
+    """A triangle estimate for a message; a size near 1e-200 makes it overflow to infinity."""
+    return f"{n:,.0f}" if math.isfinite(n) else "more than 1e308"

@@ -1,7 +1,11 @@
 """The whole job, scene to outputs: the library entry points behind the CLI.
 
     result = hemirad.solve(hemirad.load_scene("cornell_box"))
-    result.write("out/")
+    result.write("out/")    # image.png, mesh.png, mesh.ply, mesh.glb, stats.json
+
+    # a long run that can be killed, then continued by the same call with resume=True
+    # (to the same result, bit for bit)
+    result = hemirad.solve(scene, checkpoint="out/checkpoint.pt", checkpoint_every=100)
 """
 from __future__ import annotations
 
@@ -14,8 +18,9 @@ from typing import Callable
 import numpy as np
 import torch
 
-from . import display, export
-from .errors import HemiradInputError
+from . import checkpoint as checkpoints
+from . import display, export, gltf
+from .errors import HemiradInputError, SceneError
 from .gl import GLContext
 from .mesh import Mesh
 from .meshing import build_mesh
@@ -29,14 +34,17 @@ from .split import angle_quality
 
 @dataclass
 class Result:
-    """A solved scene.
+    """A solved scene, what ``solve`` returns; every tensor is float64 on the CPU.
 
     Attributes:
-        scene, mesh: what was solved.
-        radiosity: (T, 3) element radiosity B.
+        scene: what was solved (its camera and ``solver.ambient`` still steer the display).
+        mesh: the final mesh (refined, when refinement was on): vertices (V, 3), triangles
+            (T, 3), surface and material (T,), surface_names, level (T,).
+        radiosity: (T, 3) element radiosity B, linear RGB exitance in the scene's units.
         unshot: (T, 3) unshot radiosity left when the solver stopped.
         reflectance, emission: (T, 3) per element.
-        stats: numbers worth keeping (elements, shots, unshot fraction, seconds per phase).
+        stats: what stats.json holds: element counts (initial, final, per level), splits,
+            shots, unshot fraction, emitted / absorbed / escaped power, seconds per phase.
     """
 
     scene: Scene
@@ -65,6 +73,8 @@ class Result:
         return display.conforming_vertex_values(self.mesh, display.vertex_values(self.mesh, self.display_radiosity))
 
     def exposure(self) -> float:
+        """Display value per unit radiosity: the camera's, or automatic (the area-weighted mean
+        luminance of non-emitting surfaces maps to 0.18)."""
         if self.scene.camera.exposure is not None:
             return self.scene.camera.exposure
         emitting = (self.emission > 0).any(dim=1)
@@ -85,23 +95,64 @@ class Result:
         return display.to_srgb8(linear, self.exposure())
 
     def write(self, folder) -> dict[str, Path]:
-        """Write image.png, mesh.png, mesh.ply and stats.json into ``folder``; returns their paths."""
+        """Write image.png, mesh.png, mesh.ply, mesh.glb and stats.json into ``folder`` (made if
+        missing); returns their paths by kind. Raises HemiradInputError if it cannot write."""
         folder = prepare_output_folder(folder)
         paths = {"image": folder / "image.png", "mesh view": folder / "mesh.png",
-                 "mesh": folder / "mesh.ply", "stats": folder / "stats.json"}
+                 "mesh": folder / "mesh.ply", "glTF": folder / "mesh.glb", "stats": folder / "stats.json"}
         start = time.perf_counter()
         export.write_png(paths["image"], self.image())
         export.write_png(paths["mesh view"], self.mesh_image())
         rendered = time.perf_counter()
         vertex = self.vertex_radiosity()
         export.write_ply(paths["mesh"], self.mesh, vertex, display.to_srgb8(vertex.numpy(), self.exposure()))
+        self.write_glb(paths["glTF"], vertex)
         self.stats.setdefault("seconds", {}).update(
             render=rendered - start, export=time.perf_counter() - rendered)
         export.write_stats(paths["stats"], self.stats)
         return paths
 
+    def write_glb(self, path, vertex_radiosity: torch.Tensor | None = None) -> Path:
+        """Write the mesh as binary glTF: COLOR_0 the exposed linear display colour, the linear
+        radiosity as ``_RADIOSITY`` (see ``hemirad.gltf``). ``vertex_radiosity``: (V, 3), to
+        reuse ``vertex_radiosity()`` already computed. Returns the path."""
+        vertex = self.vertex_radiosity() if vertex_radiosity is None else vertex_radiosity
+        gltf.write_glb(path, self.mesh, vertex, gltf.display_color(vertex, self.exposure()))
+        return Path(path)
+
+
+def _restore(solver: ProgressiveSolver, state: dict, run: dict, path, initial_elements: int) -> dict:
+    """Load a checkpoint's solver state; returns the seconds the earlier runs spent."""
+    try:
+        if int(run["initial_elements"]) != initial_elements:
+            raise ValueError(f"the scene meshes to {initial_elements} elements, the checkpoint's run "
+                             f"started with {run['initial_elements']}")
+        solver.load_state_dict(state)
+        return {"mesh": float(run["seconds"]["mesh"]), "solve": float(run["seconds"]["solve"])}
+    except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as exc:
+        raise HemiradInputError(f"cannot resume from {path}: its content does not fit this scene ({exc}). "
+                                f"Start without --resume to begin afresh.") from exc
+
+
+def check_gl_limits(scene: Scene) -> None:
+    """Refuse, before any work, sizes the OpenGL framebuffers cannot hold: the hemicube atlas
+    (R x 3R) and the supersampled camera image. Otherwise the image would fail only after
+    the whole solve."""
+    limit = int(GLContext.get().info.get("GL_MAX_RENDERBUFFER_SIZE", 4096))
+    file = str(scene.source) if scene.source else "<scene>"
+    r = scene.solver.resolution
+    if 3 * r > limit:
+        raise SceneError(file, "solver.resolution", f"at most {limit // 6 * 2} (the hemicube is drawn into an "
+                         f"R x 3R image, and OpenGL allows {limit} pixels a side here)", r)
+    cam = scene.camera
+    if max(cam.width, cam.height) * cam.supersample > limit:
+        raise SceneError(file, "camera.supersample", f"a camera size that, times supersample, stays within "
+                         f"OpenGL's {limit} pixels a side", cam.supersample,
+                         f"The camera is {cam.width} x {cam.height}; lower supersample or the size.")
+
 
 def prepare_output_folder(folder) -> Path:
+    """Create ``folder`` (and its parents) if needed; HemiradInputError when it cannot be written."""
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -112,18 +163,69 @@ def prepare_output_folder(folder) -> Path:
     return folder
 
 
-def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None) -> Result:
-    """Mesh the scene and run progressive refinement until the scene's stopping rule."""
+def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, checkpoint=None,
+          checkpoint_every: int = 0, resume: bool = False) -> Result:
+    """Mesh the scene and run progressive refinement until the scene's stopping rule.
+
+    Args:
+        scene: from ``load_scene``; ``scene.solver`` and ``scene.refine`` may be edited first.
+        progress: called after every shot with a ``ShotReport`` (shots, shooter, elements,
+            unshot fraction, seconds); raising from it (e.g. KeyboardInterrupt) stops the solve.
+        checkpoint: path of a checkpoint file (e.g. ``out/checkpoint.pt``), or None for none.
+            With a path, a checkpoint is also written when the solve ends, so that a finished
+            run can be continued with a larger ``max_shots``.
+        checkpoint_every: write the checkpoint after every this many shots (0: only at the end).
+        resume: continue from ``checkpoint`` instead of starting afresh; the result is the
+            same, bit for bit, as that of a run never interrupted.
+    Raises:
+        HemiradInputError: a bad mesh file, a size over the OpenGL limits, a checkpoint that
+            is missing, unreadable or made for another scene or other options.
+    """
+    if checkpoint_every < 0:
+        raise ValueError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
+    if checkpoint is None and (checkpoint_every or resume):
+        raise ValueError("checkpoint_every and resume need a checkpoint path")
     options = scene.solver
+    check_gl_limits(scene)
+    saved = None
+    if checkpoint is not None:
+        fingerprint = checkpoints.fingerprint(scene)
+        if resume:  # read before meshing, so that a wrong checkpoint fails fast
+            saved = checkpoints.read(checkpoint, fingerprint)
     start = time.perf_counter()
     mesh = build_mesh(scene)
     meshed = time.perf_counter()
     reflectance = scene.reflectance_table()[mesh.material]
     emission = scene.emission_table()[mesh.material]
     refiner = Refiner(scene.refine, emission) if scene.refine.enabled else None
+    # Built from the initial mesh even when resuming: its bounds set the hemicube's near and
+    # far planes, which must be those of the run being continued.
     solver = ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner)
+    before = {"mesh": 0.0, "solve": 0.0}  # seconds spent by the runs this one continues
+    resumed_from = None
     try:
-        state = solver.run(options.max_shots, options.unshot_fraction, progress)
+        if saved is not None:
+            before = _restore(solver, *saved, checkpoint, mesh.num_elements)
+            resumed_from = solver.state.shots
+        on_shot, last_saved = progress, [None if saved is None else solver.state.shots]
+
+        def save():
+            run = {"initial_elements": mesh.num_elements,
+                   "seconds": {"mesh": before["mesh"] + meshed - start,
+                               "solve": before["solve"] + time.perf_counter() - meshed}}
+            checkpoints.write(checkpoint, fingerprint, solver.state_dict(), run)
+            last_saved[0] = solver.state.shots
+
+        if checkpoint_every:
+            def on_shot(report: ShotReport) -> None:
+                if report.shots % checkpoint_every == 0:  # counted from the run's start, resumed or not
+                    save()
+                if progress is not None:
+                    progress(report)
+
+        state = solver.run(options.max_shots, options.unshot_fraction, on_shot)
+        if checkpoint is not None and solver.state.shots != last_saved[0]:
+            save()
     finally:
         solver.close()
     solved = time.perf_counter()
@@ -147,7 +249,8 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None) ->
         "absorbed_power": state.absorbed.tolist(),
         "escaped_power": state.escaped.tolist(),
         "gl_renderer": GLContext.renderer_name(),
-        "seconds": {"mesh": meshed - start, "solve": solved - meshed,
+        "resumed_from_shot": resumed_from,
+        "seconds": {"mesh": before["mesh"] + meshed - start, "solve": before["solve"] + solved - meshed,
                     "solve_phases": solver.timings()},
     }
     return Result(scene, final, state.radiosity, state.unshot, solver.reflectance, solver.emission, stats)

@@ -31,6 +31,14 @@ class Refiner:
         self.children = CHILDREN[options.pattern]
         self.splits = 0
 
+    def state_dict(self) -> dict:
+        """What a resumed solve needs beyond the options: the split count and the threshold
+        in radiosity units (it was made relative to the emission at the start)."""
+        return {"splits": self.splits, "threshold": self.threshold}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.splits, self.threshold = int(state["splits"]), float(state["threshold"])
+
     @property
     def jacobian(self) -> str | None:
         """Which form-factor gradient the criterion needs: "full", "interior" or None."""

@@ -190,3 +190,74 @@ class ProgressiveSolver:
     def timings(self) -> dict[str, float]:
         return {**self.form_factors.timings(), "gradient": self.gradient_seconds,
                 "refine": self.refine_seconds, "update": self.update_seconds}
+
+    def state_dict(self) -> dict:
+        """Everything later shots depend on, as plain tensors, numbers and strings.
+
+        Keys: ``mesh`` (see ``mesh_state``; refinement changes it), ``reflectance``,
+        ``emission``, ``radiosity``, ``unshot`` (T, 3) float64; ``absorbed``, ``escaped``,
+        ``emitted_power`` (3,) float64; ``shots``; ``refiner`` (its own ``state_dict``, or
+        None) and ``timings``. ``emitted_power`` is kept rather than recomputed because the
+        refined mesh's areas sum to it only to rounding, and the stopping rule divides by it.
+        """
+        s = self.state
+        return {"mesh": mesh_state(self.mesh), "reflectance": self.reflectance.clone(),
+                "emission": self.emission.clone(), "radiosity": s.radiosity.clone(), "unshot": s.unshot.clone(),
+                "absorbed": s.absorbed.clone(), "escaped": s.escaped.clone(), "shots": s.shots,
+                "emitted_power": self.emitted_power.clone(),
+                "refiner": self.refiner.state_dict() if self.refiner is not None else None,
+                "timings": self.timings()}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from ``state_dict()``'s output: the next shot is the one that would have followed.
+
+        The solver must have been made for the same scene (resolution, refiner options, and
+        the initial mesh, whose bounds set the hemicube's near and far planes). Raises
+        ValueError when the parts do not fit together, e.g. a truncated or edited state.
+        """
+        mesh = mesh_from_state(state["mesh"])
+        T = mesh.num_elements
+        per_element = {k: state[k] for k in ("reflectance", "emission", "radiosity", "unshot")}
+        for key, value in per_element.items():
+            if not isinstance(value, torch.Tensor) or value.shape != (T, 3) or value.dtype != torch.float64:
+                raise ValueError(f"{key} must be a ({T}, 3) float64 tensor")
+        for key in ("absorbed", "escaped", "emitted_power"):
+            if not isinstance(state[key], torch.Tensor) or state[key].shape != (3,):
+                raise ValueError(f"{key} must be a (3,) tensor")
+        if (state["refiner"] is None) != (self.refiner is None):
+            raise ValueError("the state was saved with refinement " + ("off" if state["refiner"] is None else "on"))
+        self.mesh, self.areas = mesh, mesh.areas
+        self.reflectance, self.emission = per_element["reflectance"], per_element["emission"]
+        self.state = SolverState(per_element["radiosity"], per_element["unshot"], int(state["shots"]),
+                                 state["absorbed"].to(torch.float64), state["escaped"].to(torch.float64))
+        self.emitted_power = state["emitted_power"].to(torch.float64)
+        if self.refiner is not None:
+            self.refiner.load_state_dict(state["refiner"])
+        self.form_factors.set_geometry(mesh.corners)
+        t = state["timings"]
+        self.form_factors.hemicube.raster_seconds = float(t["raster"])
+        self.form_factors.hemicube.readback_seconds = float(t["readback"])
+        self.form_factors.seconds = float(t["form_factors"])
+        self.gradient_seconds, self.refine_seconds, self.update_seconds = (
+            float(t["gradient"]), float(t["refine"]), float(t["update"]))
+
+
+_MESH_TENSORS = ("vertices", "triangles", "surface", "material", "level", "edge_parents")
+
+
+def mesh_state(mesh: Mesh) -> dict:
+    """A Mesh as a dict of tensors and its surface names (a list of strings), for checkpoints."""
+    return {**{k: getattr(mesh, k).clone() for k in _MESH_TENSORS}, "surface_names": list(mesh.surface_names)}
+
+
+def mesh_from_state(state: dict) -> Mesh:
+    """The Mesh ``mesh_state`` described; ValueError if the parts do not fit together."""
+    if not all(isinstance(state.get(k), torch.Tensor) for k in _MESH_TENSORS):
+        raise ValueError(f"a mesh needs the tensors {', '.join(_MESH_TENSORS)}")
+    names = state.get("surface_names")
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise ValueError("surface_names must be a list of strings")
+    mesh = Mesh(**{k: state[k] for k in _MESH_TENSORS}, surface_names=names)
+    if mesh.num_elements and (int(mesh.triangles.min()) < 0 or int(mesh.triangles.max()) >= len(mesh.vertices)):
+        raise ValueError("triangles index vertices the mesh does not have")
+    return mesh
