@@ -86,6 +86,25 @@ class Mesh:
     def bounding_box(self) -> tuple[torch.Tensor, torch.Tensor]:
         return self.vertices.min(dim=0).values, self.vertices.max(dim=0).values
 
+    _TENSORS = ("vertices", "triangles", "surface", "material", "level", "edge_parents")
+
+    def state_dict(self) -> dict:
+        """The mesh as tensors and its surface names (a list of strings), for checkpoints."""
+        return {**{k: getattr(self, k).clone() for k in self._TENSORS}, "surface_names": list(self.surface_names)}
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> "Mesh":
+        """The mesh ``state_dict`` described; ValueError if the parts do not fit together."""
+        if not all(isinstance(state.get(k), torch.Tensor) for k in cls._TENSORS):
+            raise ValueError(f"a mesh needs the tensors {', '.join(cls._TENSORS)}")
+        names = state.get("surface_names")
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise ValueError("surface_names must be a list of strings")
+        mesh = cls(**{k: state[k] for k in cls._TENSORS}, surface_names=names)
+        if mesh.num_elements and (int(mesh.triangles.min()) < 0 or int(mesh.triangles.max()) >= len(mesh.vertices)):
+            raise ValueError("triangles index vertices the mesh does not have")
+        return mesh
+
     @staticmethod
     def concatenate(parts: list["Mesh"]) -> "Mesh":
         """Join meshes; surface indices and names are renumbered, materials kept."""

@@ -194,14 +194,14 @@ class ProgressiveSolver:
     def state_dict(self) -> dict:
         """Everything later shots depend on, as plain tensors, numbers and strings.
 
-        Keys: ``mesh`` (see ``mesh_state``; refinement changes it), ``reflectance``,
+        Keys: ``mesh`` (``Mesh.state_dict``; refinement changes it), ``reflectance``,
         ``emission``, ``radiosity``, ``unshot`` (T, 3) float64; ``absorbed``, ``escaped``,
         ``emitted_power`` (3,) float64; ``shots``; ``refiner`` (its own ``state_dict``, or
         None) and ``timings``. ``emitted_power`` is kept rather than recomputed because the
         refined mesh's areas sum to it only to rounding, and the stopping rule divides by it.
         """
         s = self.state
-        return {"mesh": mesh_state(self.mesh), "reflectance": self.reflectance.clone(),
+        return {"mesh": self.mesh.state_dict(), "reflectance": self.reflectance.clone(),
                 "emission": self.emission.clone(), "radiosity": s.radiosity.clone(), "unshot": s.unshot.clone(),
                 "absorbed": s.absorbed.clone(), "escaped": s.escaped.clone(), "shots": s.shots,
                 "emitted_power": self.emitted_power.clone(),
@@ -215,7 +215,7 @@ class ProgressiveSolver:
         the initial mesh, whose bounds set the hemicube's near and far planes). Raises
         ValueError when the parts do not fit together, e.g. a truncated or edited state.
         """
-        mesh = mesh_from_state(state["mesh"])
+        mesh = Mesh.from_state_dict(state["mesh"])
         T = mesh.num_elements
         per_element = {k: state[k] for k in ("reflectance", "emission", "radiosity", "unshot")}
         for key, value in per_element.items():
@@ -241,23 +241,3 @@ class ProgressiveSolver:
         self.gradient_seconds, self.refine_seconds, self.update_seconds = (
             float(t["gradient"]), float(t["refine"]), float(t["update"]))
 
-
-_MESH_TENSORS = ("vertices", "triangles", "surface", "material", "level", "edge_parents")
-
-
-def mesh_state(mesh: Mesh) -> dict:
-    """A Mesh as a dict of tensors and its surface names (a list of strings), for checkpoints."""
-    return {**{k: getattr(mesh, k).clone() for k in _MESH_TENSORS}, "surface_names": list(mesh.surface_names)}
-
-
-def mesh_from_state(state: dict) -> Mesh:
-    """The Mesh ``mesh_state`` described; ValueError if the parts do not fit together."""
-    if not all(isinstance(state.get(k), torch.Tensor) for k in _MESH_TENSORS):
-        raise ValueError(f"a mesh needs the tensors {', '.join(_MESH_TENSORS)}")
-    names = state.get("surface_names")
-    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-        raise ValueError("surface_names must be a list of strings")
-    mesh = Mesh(**{k: state[k] for k in _MESH_TENSORS}, surface_names=names)
-    if mesh.num_elements and (int(mesh.triangles.min()) < 0 or int(mesh.triangles.max()) >= len(mesh.vertices)):
-        raise ValueError("triangles index vertices the mesh does not have")
-    return mesh
