@@ -87,29 +87,51 @@ class ShotView:
         return ShotView(eye, frame, element, front.reshape(-1), weight.reshape(-1), hit, R)
 
 
-def interior_form_factors(c: torch.Tensor, view: ShotView, normals: torch.Tensor,
-                          num_elements: int) -> torch.Tensor:
+@dataclass
+class ReceiverPatches:
+    """The receiver patch behind every front-facing pixel of a render (Q pixels), frozen.
+
+    Attributes:
+        hit: (Q, 3) world point y_q; element: (Q,) receiver j; normal: (Q, 3) n_j.
+        shooter_normal: (3,) n_s.
+        scale: (Q,) w_q / kernel_q(c0), so that K_q(c0) is the hemicube's own weight w_q:
+            the patch area dA_q (and pi) are defined by it rather than recomputed.
+    """
+
+    hit: torch.Tensor
+    element: torch.Tensor
+    normal: torch.Tensor
+    shooter_normal: torch.Tensor
+    scale: torch.Tensor
+
+    @staticmethod
+    def from_view(view: ShotView, normals: torch.Tensor) -> "ReceiverPatches":
+        mask = view.front
+        hit, element = view.hit[mask], view.element[mask]
+        patches = ReceiverPatches(hit, element, normals[element], view.frame[2], view.weight[mask])
+        patches.scale = patches.scale / point_to_patch_kernel(view.eye, patches)
+        return patches
+
+
+def point_to_patch_kernel(c: torch.Tensor, patches: ReceiverPatches) -> torch.Tensor:
+    """(Q,) (n_s . (y - c)) (n_j . (c - y)) / |y - c|^4 for every patch (the form factor
+    kernel without pi and dA_q)."""
+    r = patches.hit - c
+    r2 = (r * r).sum(1)
+    return (r * patches.shooter_normal).sum(1) * -(r * patches.normal).sum(1) / (r2 * r2)
+
+
+def interior_form_factors(c: torch.Tensor, patches: ReceiverPatches, num_elements: int) -> torch.Tensor:
     """F_sj(c) with each pixel's receiver patch frozen; equals the hemicube's F_sj at c = eye.
 
     Args:
         c: (3,) eye position (the variable).
-        view: the render at ``view.eye``.
-        normals: (T, 3) element unit normals.
+        patches: the render's receiver patches.
     Returns:
-        (T,)
+        (T,) sum over the pixels q seeing j of K_q(c) = w_q kernel_q(c) / kernel_q(c0).
     """
-    mask = view.front
-    y, j, w = view.hit[mask], view.element[mask], view.weight[mask]
-    n_s, n_j = view.frame[2], normals[j]
-
-    def kernel(eye):  # (n_s . (y - c)) (n_j . (c - y)) / |y - c|^4; pi and dA_q cancel below
-        r = y - eye
-        r2 = (r * r).sum(1)
-        return (r * n_s).sum(1) * -(r * n_j).sum(1) / (r2 * r2)
-
-    # K_q(c) = w_q kernel(c) / kernel(c0): dA_q is defined by the hemicube's own weight.
-    K = w * kernel(c) / kernel(view.eye)
-    return torch.zeros(num_elements, dtype=K.dtype).index_add(0, j, K)
+    K = patches.scale * point_to_patch_kernel(c, patches)
+    return torch.zeros(num_elements, dtype=K.dtype).index_add(0, patches.element, K)
 
 
 @dataclass
@@ -233,17 +255,18 @@ def form_factor_jacobian(view: ShotView, normals: torch.Tensor, points: torch.Te
         F (T,) the hemicube form factors, and J (T, 3) their gradient with respect to the eye.
     """
     T = len(normals)
+    patches = ReceiverPatches.from_view(view, normals)
     pairs = occlusion_pairs(view, normals, points) if shadow_edges else None
 
     def F(c):
         total = torch.zeros(T, dtype=torch.float64)
         if interior:
-            total = total + interior_form_factors(c, view, normals, T)
+            total = total + interior_form_factors(c, patches, T)
         if pairs is not None:
             total = total + shadow_edge_form_factors(c, view, pairs, T)
         return total, total
 
     J, value = jacfwd(F, has_aux=True)(view.eye)
     if not interior:  # the value is the hemicube's F whatever the gradient includes
-        value = interior_form_factors(view.eye, view, normals, T)
+        value = interior_form_factors(view.eye, patches, T)
     return value, J

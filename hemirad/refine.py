@@ -71,11 +71,14 @@ class Refiner:
         parent = torch.arange(mesh.num_elements)
         while bool(selected.any()):
             self.splits += int(selected.sum())
+            touched = torch.zeros(len(mesh.vertices), dtype=torch.bool)
+            touched[mesh.triangles[selected].reshape(-1)] = True
             mesh, step = split_triangles(mesh, selected, self.options.pattern)
             parent = parent[step]
             if self.options.pattern != "pattern2":
                 break
-            selected = unbalanced(mesh)
+            near = torch.cat([touched, torch.ones(len(mesh.vertices) - len(touched), dtype=torch.bool)])
+            selected = unbalanced(mesh, near)
             room = (self.options.max_elements - mesh.num_elements) // (self.children - 1)
             if int(selected.sum()) > room:  # the budget wins over grading
                 keep = torch.nonzero(selected).reshape(-1)[:max(room, 0)]

@@ -170,22 +170,31 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
     return out, parent
 
 
-def unbalanced(mesh: Mesh) -> torch.Tensor:
+def unbalanced(mesh: Mesh, near: torch.Tensor | None = None) -> torch.Tensor:
     """(T,) bool: triangles whose neighbours are more than one level finer across an edge.
 
     The 2:1 rule of graded meshes: an edge of a leaf may carry one midpoint, but that
     midpoint's half-edges may not be split again. A leaf that breaks it sits beside a much
     finer region (typically a shadow edge that crosses it too, just under the threshold);
     splitting it grades the mesh and keeps T-vertices from nesting.
+
+    Args:
+        near: (V,) bool, optional: only triangles with a vertex marked here are examined
+            (after a split, the vertices of the split triangles: a new violation has one).
     """
     find = midpoint_lookup(mesh)
-    a = mesh.triangles.reshape(-1)
-    b = mesh.triangles[:, [1, 2, 0]].reshape(-1)
+    out = torch.zeros(mesh.num_elements, dtype=torch.bool)
+    candidates = torch.arange(mesh.num_elements) if near is None else \
+        torch.nonzero(near[mesh.triangles].any(dim=1)).reshape(-1)
+    triangles = mesh.triangles[candidates]
+    a = triangles.reshape(-1)
+    b = triangles[:, [1, 2, 0]].reshape(-1)
     m = find(a, b)
     has = m >= 0
     m_safe = torch.where(has, m, a)
     nested = has & ((find(a, m_safe) >= 0) | (find(m_safe, b) >= 0))
-    return nested.reshape(-1, 3).any(dim=1)
+    out[candidates] = nested.reshape(-1, 3).any(dim=1)
+    return out
 
 
 def largest_angles(mesh: Mesh) -> torch.Tensor:

@@ -7,7 +7,7 @@ import torch
 
 from hemirad.analytic import point_to_polygon
 from hemirad.formfactor import HemicubeFormFactors
-from hemirad.gradient import ShotView, form_factor_jacobian, interior_form_factors
+from hemirad.gradient import ReceiverPatches, ShotView, form_factor_jacobian, interior_form_factors
 from hemirad.mesh import Mesh
 
 Z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
@@ -69,12 +69,13 @@ def test_interior_gradient_equals_finite_differences_of_the_same_function():
     view, normals, points, ranges = shot(EYES[0], [RECEIVER, BLOCKER], resolution=64)
     T = len(normals)
     _, J = form_factor_jacobian(view, normals, points, interior=True, shadow_edges=False)
+    patches = ReceiverPatches.from_view(view, normals)
     step = 1e-5
     for axis in range(3):
         dc = torch.zeros(3, dtype=torch.float64)
         dc[axis] = step
-        fd = (interior_form_factors(view.eye + dc, view, normals, T)
-              - interior_form_factors(view.eye - dc, view, normals, T)) / (2 * step)
+        fd = (interior_form_factors(view.eye + dc, patches, T)
+              - interior_form_factors(view.eye - dc, patches, T)) / (2 * step)
         torch.testing.assert_close(J[:, axis], fd, rtol=1e-4, atol=1e-9)
 
 
