@@ -1,0 +1,352 @@
+"""Accuracy against the path-traced references: error and SSIM versus elements and seconds.
+
+    python scripts/accuracy_study.py [--quick] [--scenes cornell_box floating office] [--out figures]
+
+Each scene is solved with every refinement criterion over a sweep of thresholds, and with
+no refinement over a sweep of initial element sizes, and each solution is compared with
+the scene's reference in ``tests/references`` (``hemirad.metrics``: relative MSE and mean
+relative error in linear radiance over the surface pixels, SSIM of the tone-mapped images).
+Writes ``accuracy.md`` (the table) and ``accuracy.png`` (the curves) into ``--out``.
+
+The same solver settings and stopping rule for every run (``SOLVER``): refinement may split
+elements during the first ``refine_shots`` shots (the paper's 100); the mesh is then fixed
+and shooting goes on until ``unshot_fraction`` of the emitted power is left (or
+``max_shots``); the ambient term stands in for the rest, and the table gives the unshot
+fraction that was left. Times are the solve's wall-clock seconds (meshing, hemicubes,
+gradients, refinement, shots) on this machine; torch runs on one thread, because on two
+cores its second thread only competes with llvmpipe's.
+
+``--quick`` (a smoke test, about a minute) runs two thresholds per criterion on coarser
+meshes with a looser stopping rule; its numbers are not the study's.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import math
+import platform
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image, ImageDraw, ImageFont
+
+import hemirad
+from hemirad import metrics, reference
+from hemirad.gl import GLContext
+from hemirad.meshing import build_mesh
+from hemirad.pipeline import Result
+from hemirad.refine import Refiner
+from hemirad.solver import ProgressiveSolver
+
+ROOT = Path(__file__).resolve().parent.parent
+REFERENCES = ROOT / "tests" / "references"
+
+
+@dataclass(frozen=True)
+class Method:
+    """One curve: a split pattern and criterion, swept over ``values`` (thresholds, or
+    element-size factors for ``none``)."""
+
+    label: str
+    pattern: str
+    criterion: str
+    values: tuple[float, ...]
+
+
+@dataclass
+class SolverSettings:
+    resolution: int = 128
+    refine_shots: int = 100
+    unshot_fraction: float = 0.03
+    max_shots: int = 40_000
+    max_elements: int = 40_000
+    max_depth: int = 4
+
+
+# Relative thresholds are fractions of the brightest emitter's radiosity (luminance), as
+# the scene files use them; uniform's are lengths, as a fraction of the scene's smallest
+# element size; none's are element-size factors. Each sweep was chosen so that its element
+# counts span roughly 1.5x to 10x the initial mesh (the scores of different criteria have
+# different scales, so equal thresholds would not compare like with like).
+METHODS = (
+    Method("none (element size x)", "none", "none", (2.0, 1.41, 1.0, 0.71, 0.5)),
+    Method("uniform p2", "pattern2", "uniform", (1.0, 0.5)),
+    Method("neighbor_difference p2", "pattern2", "neighbor_difference", (3e-3, 1e-3, 3e-4, 1e-4)),
+    Method("gradient p1", "pattern1", "gradient", (3e-3, 1e-3, 3e-4, 1e-4)),
+    Method("gradient p2", "pattern2", "gradient", (3e-3, 1e-3, 3e-4, 1e-4)),
+    Method("receiver p2", "pattern2", "receiver", (3e-3, 1e-3, 3e-4, 1e-4)),
+    Method("partial_visibility p2", "pattern2", "partial_visibility", (3e-3, 1e-3, 3e-4, 1e-4)),
+)
+SCENES = ("cornell_box", "floating", "office")
+
+
+def scaled(scene, factor: float):
+    """A copy of the scene with every element size multiplied by ``factor``."""
+    scene = copy.deepcopy(scene)
+    for obj in scene.objects:
+        obj.element_size *= factor
+        for face in getattr(obj, "faces", {}).values():
+            if face.element_size is not None:
+                face.element_size *= factor
+    return scene
+
+
+def smallest_element_size(scene) -> float:
+    sizes = [o.element_size for o in scene.objects]
+    sizes += [f.element_size for o in scene.objects for f in getattr(o, "faces", {}).values() if f.element_size]
+    return min(sizes)
+
+
+def solve(scene, settings: SolverSettings) -> tuple[Result, float]:
+    """Refine during the first ``refine_shots`` shots, then shoot on the fixed mesh until the
+    stopping rule. Returns the result and the wall-clock seconds."""
+    start = time.perf_counter()
+    mesh = build_mesh(scene)
+    reflectance = scene.reflectance_table()[mesh.material]
+    emission = scene.emission_table()[mesh.material]
+    refiner = Refiner(scene.refine, emission) if scene.refine.enabled else None
+    solver = ProgressiveSolver(mesh, reflectance, emission, settings.resolution, refiner)
+    try:
+        state = solver.run(settings.refine_shots, settings.unshot_fraction)
+        solver.refiner = None  # the mesh is final; the rest is plain shooting
+        state = solver.run(settings.max_shots, settings.unshot_fraction)
+    finally:
+        solver.close()
+    seconds = time.perf_counter() - start
+    stats = {"elements": solver.mesh.num_elements, "initial_elements": mesh.num_elements,
+             "shots": state.shots, "unshot_fraction": solver.unshot_fraction,
+             "splits": refiner.splits if refiner else 0}
+    return Result(scene, solver.mesh, state.radiosity, state.unshot, solver.reflectance, solver.emission,
+                  stats), seconds
+
+
+@dataclass
+class Comparison:
+    """A scene's reference and the pixels compared."""
+
+    reference: reference.Reference
+    mask: np.ndarray
+
+    @classmethod
+    def load(cls, name: str, scene) -> "Comparison":
+        ref = reference.Reference.load(REFERENCES, name)
+        mesh = build_mesh(scene)
+        emitting = (scene.emission_table()[mesh.material] > 0).any(dim=1)
+        geometry, emitter = reference.coverage(mesh, emitting, ref.camera)
+        return cls(ref, metrics.surface_mask(geometry, emitter))
+
+    def scores(self, result: Result) -> dict[str, float]:
+        image = reference.radiance_view(result.mesh, result.vertex_radiosity(), self.reference.camera)
+        return metrics.compare(self.reference.radiance, image, self.mask)
+
+
+def configure(base, method: Method, value: float, settings: SolverSettings):
+    if method.pattern == "none":
+        return scaled(base, value)
+    scene = copy.deepcopy(base)
+    r = scene.refine
+    r.pattern, r.criterion, r.relative = method.pattern, method.criterion, True
+    r.threshold = value * smallest_element_size(base) if method.criterion == "uniform" else value
+    r.max_depth, r.max_elements = settings.max_depth, settings.max_elements
+    return scene
+
+
+def run_study(scenes, methods, settings: SolverSettings, element_scale: float, log=print) -> list[dict]:
+    rows = []
+    for name in scenes:
+        base = scaled(hemirad.load_scene(name), element_scale)
+        base.solver.ambient = True
+        comparison = Comparison.load(name, base)
+        for method in methods:
+            for value in method.values:
+                scene = configure(base, method, value, settings)
+                result, seconds = solve(scene, settings)
+                row = {"scene": name, "method": method.label, "value": value, **result.stats,
+                       "seconds": seconds, **comparison.scores(result)}
+                rows.append(row)
+                log(f"{name:12s} {method.label:24s} {value:<7g} {row['elements']:6d} elements "
+                    f"{row['shots']:6d} shots unshot {row['unshot_fraction']:.3f} {seconds:6.1f} s  "
+                    f"relMSE {row['relative_mse']:.5f} MRE {row['mean_relative_error']:.4f} "
+                    f"SSIM {row['ssim']:.4f} bias {row['bias']:+.4f}")
+    return rows
+
+
+# ----------------------------------------------------------------------------------------
+# the table
+
+
+def write_table(path: Path, rows: list[dict], settings: SolverSettings, args) -> None:
+    machine = (f"{platform.machine()}, {platform.system()}, 1 torch thread, {GLContext.renderer_name()}")
+    lines = [
+        "# Accuracy against path-traced references",
+        "",
+        f"Made by `python scripts/accuracy_study.py{' --quick' if args.quick else ''}` on {machine}. "
+        f"Hemicube {settings.resolution}; refinement during the first {settings.refine_shots} shots, "
+        f"then shooting on the fixed mesh until {settings.unshot_fraction:g} of the emitted power is "
+        f"left (at most {settings.max_shots} shots), ambient term on; max depth {settings.max_depth}, "
+        f"at most {settings.max_elements} elements. Thresholds are relative to the brightest "
+        "emitter's radiosity; `uniform`'s are edge lengths as a fraction of the scene's smallest "
+        "element size; `none`'s are element-size factors.",
+        "",
+        "Errors are over the surface pixels (no emitters, no silhouettes against the background), "
+        "in linear radiance (hemirad's B / pi) against Mitsuba 3 references (`tests/references`): "
+        "relMSE = sum (x - r)^2 / sum r^2; MRE = mean |x - r| / (r + 1% of the channel mean); "
+        "SSIM of both images tone-mapped with the reference's exposure; bias = relative error of "
+        "the mean luminance.",
+        "",
+    ]
+    for name in dict.fromkeys(r["scene"] for r in rows):
+        lines += [f"## {name}", "",
+                  "| method | threshold | elements | shots | unshot | seconds | relMSE | MRE | SSIM | bias |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in (r for r in rows if r["scene"] == name):
+            lines.append(f"| {r['method']} | {r['value']:g} | {r['elements']} | {r['shots']} | "
+                         f"{r['unshot_fraction']:.3f} | {r['seconds']:.1f} | {r['relative_mse']:.5f} | "
+                         f"{r['mean_relative_error']:.4f} | {r['ssim']:.4f} | {r['bias']:+.4f} |")
+        lines.append("")
+    path.write_text("\n".join(lines))
+
+
+# ----------------------------------------------------------------------------------------
+# the figure, drawn with PIL (matplotlib is not a dependency)
+
+COLOURS = ((0, 0, 0), (140, 140, 140), (230, 159, 0), (86, 180, 233), (0, 114, 178), (0, 158, 115),
+           (213, 94, 0), (204, 121, 167))
+MARKERS = ("o", "s", "^", "v", "D", "x", "+", "*")
+
+
+def _ticks(lo: float, hi: float, log: bool) -> list[float]:
+    if log:
+        first, last = math.floor(math.log10(lo)), math.ceil(math.log10(hi))
+        decades = [10.0 ** e for e in range(first, last + 1)]
+        if len(decades) <= 3:  # few decades: 1, 2, 5 steps
+            decades = sorted({m * d for d in decades for m in (1, 2, 5)})
+        return [t for t in decades if lo <= t <= hi]
+    step = 10 ** math.floor(math.log10((hi - lo) / 4))
+    for m in (1, 2, 5, 10):
+        if (hi - lo) / (m * step) <= 6:
+            step *= m
+            break
+    return [t for t in np.arange(math.ceil(lo / step) * step, hi + step / 2, step)]
+
+
+def _marker(draw, x, y, kind, colour, r=4):
+    if kind == "o":
+        draw.ellipse((x - r, y - r, x + r, y + r), outline=colour, width=2)
+    elif kind == "s":
+        draw.rectangle((x - r, y - r, x + r, y + r), outline=colour, width=2)
+    elif kind == "^":
+        draw.polygon([(x, y - r), (x - r, y + r), (x + r, y + r)], outline=colour)
+    elif kind == "v":
+        draw.polygon([(x, y + r), (x - r, y - r), (x + r, y - r)], outline=colour)
+    elif kind == "D":
+        draw.polygon([(x, y - r), (x + r, y), (x, y + r), (x - r, y)], outline=colour)
+    elif kind == "x":
+        draw.line((x - r, y - r, x + r, y + r), fill=colour, width=2)
+        draw.line((x - r, y + r, x + r, y - r), fill=colour, width=2)
+    else:
+        draw.line((x - r, y, x + r, y), fill=colour, width=2)
+        draw.line((x, y - r, x, y + r), fill=colour, width=2)
+
+
+def draw_panel(draw, font, box, series, xkey, ykey, xlog, ylog, title, xlabel, ylabel):
+    """One axes: ``series`` is [(label, colour, marker, rows)]; x and y from row keys."""
+    left, top, right, bottom = box
+    px0, py0, px1, py1 = left + 58, top + 22, right - 10, bottom - 36
+    xs = [r[xkey] for *_, rows in series for r in rows]
+    ys = [r[ykey] for *_, rows in series for r in rows]
+    xlo, xhi, ylo, yhi = min(xs), max(xs), min(ys), max(ys)
+    if xlog:
+        xlo, xhi = xlo / 1.15, xhi * 1.15
+    if ylog:
+        ylo, yhi = ylo / 1.3, yhi * 1.3
+    else:
+        pad = 0.05 * (yhi - ylo or 1.0)
+        ylo, yhi = ylo - pad, yhi + pad
+    fx = (lambda v: math.log10(v)) if xlog else (lambda v: v)
+    fy = (lambda v: math.log10(v)) if ylog else (lambda v: v)
+
+    def to_px(x, y):
+        return (px0 + (fx(x) - fx(xlo)) / (fx(xhi) - fx(xlo)) * (px1 - px0),
+                py1 - (fy(y) - fy(ylo)) / (fy(yhi) - fy(ylo)) * (py1 - py0))
+
+    draw.rectangle((px0, py0, px1, py1), outline=(0, 0, 0))
+    draw.text(((px0 + px1) / 2, top + 4), title, fill=(0, 0, 0), font=font, anchor="mt")
+    draw.text(((px0 + px1) / 2, bottom - 4), xlabel, fill=(0, 0, 0), font=font, anchor="mb")
+    draw.text((left + 2, top + 4), ylabel, fill=(0, 0, 0), font=font, anchor="lt")
+    for t in _ticks(xlo, xhi, xlog):
+        x, _ = to_px(t, ylo)
+        draw.line((x, py1, x, py1 + 4), fill=(0, 0, 0))
+        draw.line((x, py0, x, py1), fill=(235, 235, 235))
+        draw.text((x, py1 + 6), f"{t:g}", fill=(0, 0, 0), font=font, anchor="mt")
+    for t in _ticks(ylo, yhi, ylog):
+        _, y = to_px(xlo, t)
+        draw.line((px0 - 4, y, px0, y), fill=(0, 0, 0))
+        draw.line((px0, y, px1, y), fill=(235, 235, 235))
+        draw.text((px0 - 6, y), f"{t:.3g}", fill=(0, 0, 0), font=font, anchor="rm")
+    for label, colour, marker, rows in series:
+        points = sorted(to_px(r[xkey], r[ykey]) for r in rows)
+        if len(points) > 1:
+            draw.line(points, fill=colour, width=2)
+        for x, y in points:
+            _marker(draw, x, y, marker, colour)
+
+
+def write_figure(path: Path, rows: list[dict]) -> None:
+    """Per scene (one row of panels): relMSE and SSIM against elements, relMSE against seconds."""
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    style = {m: (COLOURS[i % len(COLOURS)], MARKERS[i % len(MARKERS)]) for i, m in enumerate(methods)}
+    panel_w, panel_h, legend_h = 420, 300, 26 * math.ceil(len(methods) / 3) + 10
+    image = Image.new("RGB", (3 * panel_w, len(scenes) * panel_h + legend_h), "white")
+    draw = ImageDraw.Draw(image)
+    font = ImageFont.load_default()
+    panels = (("elements", "relative_mse", True, True, "relative MSE vs elements", "elements", "relMSE"),
+              ("elements", "ssim", True, False, "SSIM vs elements", "elements", "SSIM"),
+              ("seconds", "relative_mse", True, True, "relative MSE vs seconds", "seconds", "relMSE"))
+    for i, name in enumerate(scenes):
+        series = [(m, *style[m], [r for r in rows if r["scene"] == name and r["method"] == m]) for m in methods]
+        series = [s for s in series if s[3]]
+        for j, (xkey, ykey, xlog, ylog, title, xlabel, ylabel) in enumerate(panels):
+            box = (j * panel_w, i * panel_h, (j + 1) * panel_w, (i + 1) * panel_h)
+            draw_panel(draw, font, box, series, xkey, ykey, xlog, ylog, f"{name}: {title}", xlabel, ylabel)
+    top = len(scenes) * panel_h + 8
+    for k, m in enumerate(methods):
+        colour, marker = style[m]
+        x, y = 20 + (k % 3) * panel_w, top + 26 * (k // 3) + 8
+        draw.line((x, y, x + 30, y), fill=colour, width=2)
+        _marker(draw, x + 15, y, marker, colour)
+        draw.text((x + 40, y), m, fill=(0, 0, 0), font=font, anchor="lm")
+    image.save(path)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenes", nargs="+", default=[s for s in SCENES if s in hemirad.bundled_scenes()])
+    parser.add_argument("--out", type=Path, default=None,
+                        help="default: figures/ (with --quick: accuracy_quick/ in the current folder)")
+    parser.add_argument("--quick", action="store_true", help="a smoke test: coarse, loose, two values per curve")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+
+    settings, element_scale, methods = SolverSettings(), 1.0, METHODS
+    if args.quick:
+        settings = SolverSettings(resolution=64, refine_shots=20, unshot_fraction=0.2, max_elements=4000, max_depth=2)
+        element_scale = 2.0
+        methods = tuple(Method(m.label, m.pattern, m.criterion, m.values[:2]) for m in METHODS)
+    start = time.perf_counter()
+    rows = run_study(args.scenes, methods, settings, element_scale)
+    out = args.out or (Path("accuracy_quick") if args.quick else ROOT / "figures")
+    out.mkdir(parents=True, exist_ok=True)
+    write_table(out / "accuracy.md", rows, settings, args)
+    write_figure(out / "accuracy.png", rows)
+    print(f"{len(rows)} runs in {time.perf_counter() - start:.0f} s; wrote {out / 'accuracy.md'} and accuracy.png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,114 @@
+"""Render the path-traced references the accuracy tests compare against (needs Mitsuba 3).
+
+    python scripts/make_references.py [--scenes cornell_box floating] [--spp 32768]
+                                      [--height 128] [--variant llvm_ad_rgb] [--out tests/references]
+
+For every bundled scene (default) it renders the scene's own initial mesh with Mitsuba's
+path tracer (see ``hemirad.reference``) at the scene camera's aspect, ``--height`` pixels
+high, and writes ``<scene>.npz`` (float16 linear radiance) and ``<scene>.json`` (how it was
+made). The samples are rendered as two independent halves; the reference is their mean, and
+their difference measures its own noise:
+
+    E|a - b|^2 = 2 var(half)  and  var(mean) = var(half) / 2,  so
+    relative MSE of the reference ~ relative_mse(a, b) / 4, mean relative error ~ MRE(a, b) / 2
+
+(Gaussian noise: E|N(0, s^2 / 2)| = E|N(0, 2 s^2)| / 2). Those, and the SSIM between the
+halves, are stored with the reference, over the same surface pixels the tests use.
+
+Mitsuba is optional: ``pip install 'hemirad[reference]'``. The LLVM variant is used when
+it runs (on Debian it needs the package libllvm19), the scalar one otherwise (10-30x slower).
+This script never opens an OpenGL context: Mesa's llvmpipe and Dr.Jit load different LLVMs.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import hemirad
+from hemirad import metrics, reference
+from hemirad.meshing import build_mesh
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def surface_pixels_from_reference(radiance: np.ndarray, emission_radiance: float) -> np.ndarray:
+    """(H, W) bool: ``metrics.surface_mask`` estimated from the image alone (this script
+    opens no rasteriser): a pixel is on geometry when it is not black (there is no
+    environment light), and an emitter when it is at least half the dimmest emitter's
+    radiance. Used only for the noise estimate; the tests use exact coverage."""
+    lum = metrics.luminance(radiance)
+    return metrics.surface_mask((lum > 0).astype(np.float32), (lum >= 0.5 * emission_radiance).astype(np.float32))
+
+
+def make(name: str, spp: int, height: int, out: Path, seed: int, variant: str) -> dict:
+    scene = hemirad.load_scene(name)
+    mesh = build_mesh(scene)
+    camera = reference.reference_camera(scene.camera, height)
+    start = time.perf_counter()
+    halves = []
+    for half in range(2):
+        def progress(done, half=half):
+            print(f"\r  {name}: half {half + 1}/2, {done}/{spp // 2} spp", end="", file=sys.stderr, flush=True)
+        halves.append(reference.render_reference(scene, camera, spp // 2, seed=2 * seed + half,
+                                                 mesh=mesh, progress=progress))
+    seconds = time.perf_counter() - start
+    print(file=sys.stderr)
+    a, b = halves
+    mean = 0.5 * (a + b)
+
+    emitters = [m for m in scene.materials if max(m.emission) > 0]
+    dimmest = min(float(metrics.luminance(np.array(m.emission))) for m in emitters) / np.pi
+    mask = surface_pixels_from_reference(mean, dimmest)
+    noise = {
+        "relative_mse": metrics.relative_mse(a, b, mask) / 4.0,
+        # |mean - a| = |a - b| / 2 exactly: the MRE(a, b) / 2 estimate, relative to the mean.
+        "mean_relative_error": metrics.mean_relative_error(mean, a, mask),
+        "ssim_between_halves": metrics.ssim(a, b, mask, metrics.reference_exposure(mean, mask)),
+    }
+    info = {
+        "scene": name,
+        "units": "linear RGB radiance; a hemirad radiosity B compares as B / pi",
+        "camera": {"position": list(camera.position), "look_at": list(camera.look_at), "up": list(camera.up),
+                   "fov": camera.fov, "width": camera.width, "height": camera.height},
+        "renderer": {"mitsuba": _mitsuba_version(), "variant": variant, "integrator": "path",
+                     "max_depth": "unlimited (Russian roulette)", "rfilter": "box", "sampler": "independent"},
+        "spp": spp,
+        "seeds": [2 * seed, 2 * seed + 1],
+        "seconds": round(seconds, 1),
+        "noise": {k: float(f"{v:.4g}") for k, v in noise.items()},
+        "geometry": reference.geometry_summary(scene, mesh),
+    }
+    paths = reference.Reference(mean, info).save(out, name)
+    sizes = ", ".join(f"{p.name} {p.stat().st_size / 1024:.0f} KB" for p in paths)
+    print(f"{name}: {camera.width} x {camera.height}, {spp} spp in {seconds:.0f} s; noise {info['noise']}; {sizes}")
+    return info
+
+
+def _mitsuba_version() -> str:
+    import mitsuba
+    return mitsuba.__version__
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenes", nargs="+", default=None, help="default: every bundled scene")
+    parser.add_argument("--spp", type=int, default=32768, help="samples per pixel in all (two halves)")
+    parser.add_argument("--height", type=int, default=reference.REFERENCE_HEIGHT)
+    parser.add_argument("--variant", default=None, help="a Mitsuba variant; default the fastest that runs")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=ROOT / "tests" / "references")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)  # Dr.Jit uses the cores; torch only meshes here
+    variant = reference.select_variant(args.variant)
+    for name in args.scenes or hemirad.bundled_scenes():
+        make(name, args.spp, args.height, args.out, args.seed, variant)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
