@@ -183,10 +183,14 @@ def _import_mitsuba():
 def _variant_works(variant: str) -> bool:
     """Try a variant in a child process: with an LLVM that Dr.Jit rejects, the LLVM
     variants abort the process instead of raising."""
-    probe = ("import mitsuba as mi; mi.set_variant(%r); "
-             "s = mi.load_dict({'type': 'scene', 'shape': {'type': 'sphere'}, 'light': {'type': 'constant'}, "
-             "'integrator': {'type': 'path'}, 'sensor': {'type': 'perspective', 'film': {'type': 'hdrfilm', 'width': 4, 'height': 4}}}); "
-             "assert mi.render(s, spp=4).shape == (4, 4, 3)" % variant)
+    probe = "\n".join([
+        "import mitsuba as mi",
+        f"mi.set_variant({variant!r})",
+        "film = {'type': 'hdrfilm', 'width': 4, 'height': 4}",
+        "scene = mi.load_dict({'type': 'scene', 'integrator': {'type': 'path'}, 'shape': {'type': 'sphere'},",
+        "                      'light': {'type': 'constant'}, 'sensor': {'type': 'perspective', 'film': film}})",
+        "assert mi.render(scene, spp=4).shape == (4, 4, 3)",
+    ])
     try:
         done = subprocess.run([sys.executable, "-c", probe], capture_output=True, timeout=300)
     except (OSError, subprocess.TimeoutExpired):
@@ -206,7 +210,7 @@ def select_variant(preferred: str | None = None) -> str:
                             f"installed: {', '.join(mi.variants())}.")
 
 
-def _rgb(mi, value) -> dict:
+def _rgb(value) -> dict:
     return {"type": "rgb", "value": [float(v) for v in value]}
 
 
@@ -262,8 +266,8 @@ def mitsuba_scene_dict(scene: Scene, camera: Camera, mesh: Mesh | None = None, m
         used, compact = np.unique(triangles, return_inverse=True)
         emitter = None
         if any(e > 0 for e in material.emission):
-            emitter = {"type": "area", "radiance": _rgb(mi, [e / math.pi for e in material.emission])}
-        bsdf = {"type": "diffuse", "reflectance": _rgb(mi, material.reflectance)}
+            emitter = {"type": "area", "radiance": _rgb([e / math.pi for e in material.emission])}
+        bsdf = {"type": "diffuse", "reflectance": _rgb(material.reflectance)}
         out[f"material_{index}"] = _mitsuba_mesh(mi, material.name, vertices[used],
                                                  compact.reshape(-1, 3), bsdf, emitter)
     return out

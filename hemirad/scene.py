@@ -6,6 +6,7 @@ emission are exitances (power per area, e.g. W/m^2); colours are linear RGB.
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -130,6 +131,16 @@ class Scene:
     solver: SolverOptions = field(default_factory=SolverOptions)
     refine: RefineOptions = field(default_factory=RefineOptions)
     source: Path | None = None  # the file it was read from
+
+    def with_element_sizes_scaled(self, factor: float) -> "Scene":
+        """A copy of the scene with every element size (room faces' too) times ``factor``."""
+        scene = copy.deepcopy(self)
+        for obj in scene.objects:
+            obj.element_size *= factor
+            for face in getattr(obj, "faces", {}).values():
+                if face.element_size is not None:
+                    face.element_size *= factor
+        return scene
 
     def material_index(self, name: str) -> int:
         return [m.name for m in self.materials].index(name)

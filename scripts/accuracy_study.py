@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import math
 import platform
 import sys
@@ -48,40 +49,59 @@ REFERENCES = ROOT / "tests" / "references"
 
 @dataclass(frozen=True)
 class Method:
-    """One curve: a split pattern and criterion, swept over ``values`` (thresholds, or
-    element-size factors for ``none``)."""
+    """One curve: a split pattern and a criterion ("none": no refinement)."""
 
     label: str
     pattern: str
     criterion: str
-    values: tuple[float, ...]
 
 
-@dataclass
+@dataclass(frozen=True)
 class SolverSettings:
     resolution: int = 128
     refine_shots: int = 100
     unshot_fraction: float = 0.03
     max_shots: int = 40_000
-    max_elements: int = 40_000
+    max_elements: int = 20_000
     max_depth: int = 4
 
 
-# Relative thresholds are fractions of the brightest emitter's radiosity (luminance), as
-# the scene files use them; uniform's are lengths, as a fraction of the scene's smallest
-# element size; none's are element-size factors. Each sweep was chosen so that its element
-# counts span roughly 1.5x to 10x the initial mesh (the scores of different criteria have
-# different scales, so equal thresholds would not compare like with like).
 METHODS = (
-    Method("none (element size x)", "none", "none", (2.0, 1.41, 1.0, 0.71, 0.5)),
-    Method("uniform p2", "pattern2", "uniform", (1.0, 0.5)),
-    Method("neighbor_difference p2", "pattern2", "neighbor_difference", (3e-3, 1e-3, 3e-4, 1e-4)),
-    Method("gradient p1", "pattern1", "gradient", (3e-3, 1e-3, 3e-4, 1e-4)),
-    Method("gradient p2", "pattern2", "gradient", (3e-3, 1e-3, 3e-4, 1e-4)),
-    Method("receiver p2", "pattern2", "receiver", (3e-3, 1e-3, 3e-4, 1e-4)),
-    Method("partial_visibility p2", "pattern2", "partial_visibility", (3e-3, 1e-3, 3e-4, 1e-4)),
+    Method("none", "none", "none"),
+    Method("uniform p2", "pattern2", "uniform"),
+    Method("neighbor_difference p2", "pattern2", "neighbor_difference"),
+    Method("gradient p1", "pattern1", "gradient"),
+    Method("gradient p2", "pattern2", "gradient"),
+    Method("receiver p2", "pattern2", "receiver"),
+    Method("partial_visibility p2", "pattern2", "partial_visibility"),
 )
 SCENES = ("cornell_box", "floating", "office")
+
+# Every scene starts from its own mesh with element sizes doubled (a quarter of the
+# elements): the regime where where elements go matters, and the runs stay affordable
+# (converging costs about 2.5 shots per element at 2-12 ms per shot).
+ELEMENT_SCALE = 2.0
+# none: element sizes times these (about 1, 1.5, 2.5 and 4 times the elements).
+NONE_FACTORS = (1.0, 0.82, 0.63, 0.5)
+# uniform: the threshold edge length as a fraction of the initial mesh's shortest longest
+# edge; 0.99 splits every element once (4 times the elements), as meshing twice as fine does.
+UNIFORM_FACTORS = (0.99,)
+# The radiosity criteria's thresholds (fractions of the brightest emitter's radiosity,
+# luminance), per scene: each criterion's scores have their own scale and its element
+# count jumps at its own thresholds, so equal thresholds would not compare like with like.
+# These give about TARGET_FACTORS times the initial elements after the refinement phase;
+# `--search` finds them anew.
+TARGET_FACTORS = (1.5, 2.5, 4.0)
+CRITERION_SEARCHED = ("neighbor_difference", "gradient", "receiver", "partial_visibility")
+THRESHOLDS: dict[tuple[str, str], tuple[float, ...]] = {}
+
+
+def sweep(name: str, method: Method) -> tuple[float, ...]:
+    if method.criterion == "none":
+        return NONE_FACTORS
+    if method.criterion == "uniform":
+        return UNIFORM_FACTORS
+    return THRESHOLDS[(name, method.label)]
 
 
 def scaled(scene, factor: float):
@@ -95,10 +115,10 @@ def scaled(scene, factor: float):
     return scene
 
 
-def smallest_element_size(scene) -> float:
-    sizes = [o.element_size for o in scene.objects]
-    sizes += [f.element_size for o in scene.objects for f in getattr(o, "faces", {}).values() if f.element_size]
-    return min(sizes)
+def shortest_longest_edge(scene) -> float:
+    """The smallest, over the initial elements, of an element's longest edge."""
+    corners = build_mesh(scene).corners
+    return float((corners - corners.roll(1, dims=1)).norm(dim=-1).amax(dim=1).min())
 
 
 def solve(scene, settings: SolverSettings) -> tuple[Result, float]:
@@ -145,24 +165,31 @@ class Comparison:
 
 
 def configure(base, method: Method, value: float, settings: SolverSettings):
-    if method.pattern == "none":
+    """The scene for one run: ``value`` is an element-size factor (none), a fraction of the
+    shortest longest edge (uniform) or a relative threshold."""
+    if method.criterion == "none":
         return scaled(base, value)
     scene = copy.deepcopy(base)
     r = scene.refine
-    r.pattern, r.criterion, r.relative = method.pattern, method.criterion, True
-    r.threshold = value * smallest_element_size(base) if method.criterion == "uniform" else value
+    r.pattern, r.criterion = method.pattern, method.criterion
+    if method.criterion == "uniform":
+        r.threshold, r.relative = value * shortest_longest_edge(base), False
+    else:
+        r.threshold, r.relative = value, True
     r.max_depth, r.max_elements = settings.max_depth, settings.max_elements
     return scene
 
 
-def run_study(scenes, methods, settings: SolverSettings, element_scale: float, log=print) -> list[dict]:
+def run_study(scenes, methods, settings: SolverSettings, element_scale: float, values=None, log=print) -> list[dict]:
+    """Solve and score every (scene, method, value); ``values(name, method)`` gives the sweep."""
+    values = values or sweep
     rows = []
     for name in scenes:
         base = scaled(hemirad.load_scene(name), element_scale)
         base.solver.ambient = True
         comparison = Comparison.load(name, base)
         for method in methods:
-            for value in method.values:
+            for value in values(name, method):
                 scene = configure(base, method, value, settings)
                 result, seconds = solve(scene, settings)
                 row = {"scene": name, "method": method.label, "value": value, **result.stats,
@@ -171,8 +198,47 @@ def run_study(scenes, methods, settings: SolverSettings, element_scale: float, l
                 log(f"{name:12s} {method.label:24s} {value:<7g} {row['elements']:6d} elements "
                     f"{row['shots']:6d} shots unshot {row['unshot_fraction']:.3f} {seconds:6.1f} s  "
                     f"relMSE {row['relative_mse']:.5f} MRE {row['mean_relative_error']:.4f} "
-                    f"SSIM {row['ssim']:.4f} bias {row['bias']:+.4f}")
+                    f"SSIM {row['ssim']:.4f} bias {row['bias']:+.4f}", flush=True)
     return rows
+
+
+# ----------------------------------------------------------------------------------------
+# choosing thresholds
+
+
+def refined_elements(base, method: Method, value: float, settings: SolverSettings) -> int:
+    """Elements after the refinement phase alone (what the full run will have)."""
+    only = dataclasses.replace(settings, max_shots=settings.refine_shots, unshot_fraction=0.0)
+    result, _ = solve(configure(base, method, value, only), only)
+    return result.stats["elements"]
+
+
+def search_thresholds(base, method: Method, targets, settings: SolverSettings, log=print) -> list[float]:
+    """For each target element count, a threshold that gives within 15% of it: bisection
+    on log(threshold), counts falling as the threshold rises (criteria whose scores jump,
+    like neighbor_difference's cascade, may not get closer; the nearest is kept)."""
+    cache: dict[float, int] = {}
+
+    def count(t: float) -> int:
+        if t not in cache:
+            cache[t] = refined_elements(base, method, t, settings)
+            log(f"    {method.label} threshold {t:.3g}: {cache[t]} elements", flush=True)
+        return cache[t]
+
+    found = []
+    for target in targets:
+        lo, hi = -5.0, -0.5  # log10 threshold: many elements at lo, few at hi
+        best = None
+        for _ in range(10):
+            mid = round((lo + hi) / 2, 3)
+            n = count(10.0 ** mid)
+            if best is None or abs(math.log(n / target)) < abs(math.log(count(10.0 ** best) / target)):
+                best = mid
+            if abs(n / target - 1) < 0.15:
+                break
+            lo, hi = (mid, hi) if n > target else (lo, mid)
+        found.append(float(f"{10.0 ** best:.3g}"))
+    return found
 
 
 # ----------------------------------------------------------------------------------------
@@ -330,16 +396,34 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=None,
                         help="default: figures/ (with --quick: accuracy_quick/ in the current folder)")
     parser.add_argument("--quick", action="store_true", help="a smoke test: coarse, loose, two values per curve")
+    parser.add_argument("--search", action="store_true",
+                        help="find the thresholds of THRESHOLDS anew (refinement phase only) and print them")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
+    if args.search:
+        settings = SolverSettings()
+        table = {}
+        for name in args.scenes:
+            base = scaled(hemirad.load_scene(name), ELEMENT_SCALE)
+            initial = build_mesh(base).num_elements
+            targets = [round(initial * f) for f in TARGET_FACTORS]
+            print(f"{name}: {initial} initial elements, targets {targets}", flush=True)
+            for method in METHODS:
+                if method.criterion in CRITERION_SEARCHED:
+                    table[(name, method.label)] = search_thresholds(base, method, targets, settings)
+                    print(f"  {method.label}: {table[(name, method.label)]}", flush=True)
+        print("THRESHOLDS = {")
+        for key, values in table.items():
+            print(f"    {key!r}: {tuple(values)!r},")
+        print("}")
+        return 0
 
-    settings, element_scale, methods = SolverSettings(), 1.0, METHODS
+    settings, values = SolverSettings(), sweep
     if args.quick:
-        settings = SolverSettings(resolution=64, refine_shots=20, unshot_fraction=0.2, max_elements=4000, max_depth=2)
-        element_scale = 2.0
-        methods = tuple(Method(m.label, m.pattern, m.criterion, m.values[:2]) for m in METHODS)
+        settings = SolverSettings(resolution=64, refine_shots=20, unshot_fraction=0.2, max_elements=4000)
+        values = lambda name, method: sweep(name, method)[:1]  # noqa: E731
     start = time.perf_counter()
-    rows = run_study(args.scenes, methods, settings, element_scale)
+    rows = run_study(args.scenes, METHODS, settings, ELEMENT_SCALE, values)
     out = args.out or (Path("accuracy_quick") if args.quick else ROOT / "figures")
     out.mkdir(parents=True, exist_ok=True)
     write_table(out / "accuracy.md", rows, settings, args)

@@ -24,17 +24,6 @@ from hemirad.meshing import build_mesh
 from hemirad.solver import ProgressiveSolver
 
 
-def scaled(scene, factor: float):
-    """A copy of the scene with every element size multiplied by ``factor``."""
-    scene = copy.deepcopy(scene)
-    for obj in scene.objects:
-        obj.element_size *= factor
-        for face in getattr(obj, "faces", {}).values():
-            if face.element_size is not None:
-                face.element_size *= factor
-    return scene
-
-
 def bench(scene, shots: int, resolution: int) -> dict:
     mesh = build_mesh(scene)
     reflectance = scene.reflectance_table()[mesh.material]
@@ -68,7 +57,7 @@ def main() -> None:
     print("| size factor | elements | ms/shot | raster | read-back | torch form factors | update |")
     print("|---:|---:|---:|---:|---:|---:|---:|")
     for factor in args.factors:
-        r = bench(scaled(scene, factor), args.shots, args.resolution)
+        r = bench(scene.with_element_sizes_scaled(factor), args.shots, args.resolution)
         ms = {k: 1e3 * r[k] for k in ("per_shot", "raster", "readback", "form_factors", "update")}
         print(f"| {factor:g} | {r['elements']} | {ms['per_shot']:.2f} | {ms['raster']:.2f} | "
               f"{ms['readback']:.2f} | {ms['form_factors']:.2f} | {ms['update']:.2f} |", flush=True)

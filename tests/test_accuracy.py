@@ -77,19 +77,8 @@ MAX_BIAS = 0.05
 # helpers
 
 
-def scaled(scene: Scene, factor: float) -> Scene:
-    """A copy of the scene with every element size multiplied by ``factor``."""
-    scene = copy.deepcopy(scene)
-    for obj in scene.objects:
-        obj.element_size *= factor
-        for face in getattr(obj, "faces", {}).values():
-            if face.element_size is not None:
-                face.element_size *= factor
-    return scene
-
-
 def solve(scene: Scene, settings: Settings, ambient: bool = True, max_shots: int | None = None):
-    scene = scaled(scene, settings.element_scale)
+    scene = scene.with_element_sizes_scaled(settings.element_scale)
     scene.solver.resolution = settings.resolution
     scene.solver.unshot_fraction = settings.unshot_fraction
     scene.solver.max_shots = settings.max_shots if max_shots is None else max_shots
@@ -270,7 +259,7 @@ def test_converged_solution_matches_the_reference(name):
 def test_one_bounce_fails(name):
     """Direct light only: every emitter element shoots once, nothing else, no ambient term."""
     c = case(name)
-    mesh = build_mesh(scaled(c.scene, FAST.element_scale))
+    mesh = build_mesh(c.scene.with_element_sizes_scaled(FAST.element_scale))
     emitters = int((c.scene.emission_table()[mesh.material] > 0).any(dim=1).sum())
     result = solve(c.scene, FAST, ambient=False, max_shots=emitters)
     emitting = (result.emission > 0).any(dim=1)
