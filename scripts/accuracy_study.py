@@ -24,11 +24,12 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import json
 import math
 import platform
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -121,17 +122,6 @@ def sweep(name: str, method: Method) -> tuple[float, ...]:
     return tuple(dict.fromkeys(THRESHOLDS[(name, method.label)]))
 
 
-def scaled(scene, factor: float):
-    """A copy of the scene with every element size multiplied by ``factor``."""
-    scene = copy.deepcopy(scene)
-    for obj in scene.objects:
-        obj.element_size *= factor
-        for face in getattr(obj, "faces", {}).values():
-            if face.element_size is not None:
-                face.element_size *= factor
-    return scene
-
-
 def shortest_longest_edge(scene) -> float:
     """The smallest, over the initial elements, of an element's longest edge."""
     corners = build_mesh(scene).corners
@@ -185,7 +175,7 @@ def configure(base, method: Method, value: float, settings: SolverSettings):
     """The scene for one run: ``value`` is an element-size factor (none), a fraction of the
     shortest longest edge (uniform) or a relative threshold."""
     if method.criterion == "none":
-        return scaled(base, value)
+        return base.with_element_sizes_scaled(value)
     scene = copy.deepcopy(base)
     r = scene.refine
     r.pattern, r.criterion = method.pattern, method.criterion
@@ -202,7 +192,7 @@ def run_study(scenes, methods, settings: SolverSettings, element_scale: float, v
     values = values or sweep
     rows = []
     for name in scenes:
-        base = scaled(hemirad.load_scene(name), element_scale)
+        base = hemirad.load_scene(name).with_element_sizes_scaled(element_scale)
         base.solver.ambient = True
         comparison = Comparison.load(name, base)
         for method in methods:
@@ -303,18 +293,20 @@ MARKERS = ("o", "s", "^", "v", "D", "x", "+", "*")
 
 
 def _ticks(lo: float, hi: float, log: bool) -> list[float]:
+    """Tick values in [lo, hi]: decades (1-2-5 when few) on a log axis, else round steps."""
     if log:
         first, last = math.floor(math.log10(lo)), math.ceil(math.log10(hi))
-        decades = [10.0 ** e for e in range(first, last + 1)]
-        if len(decades) <= 3:  # few decades: 1, 2, 5 steps
-            decades = sorted({m * d for d in decades for m in (1, 2, 5)})
-        return [t for t in decades if lo <= t <= hi]
-    step = 10 ** math.floor(math.log10((hi - lo) / 4))
-    for m in (1, 2, 5, 10):
-        if (hi - lo) / (m * step) <= 6:
+        for mantissas in ((1,), (1, 2, 5), (1, 1.5, 2, 3, 4, 5, 6, 8)):
+            ticks = [m * 10.0 ** e for e in range(first, last + 1) for m in mantissas]
+            ticks = [t for t in ticks if lo <= t <= hi]
+            if len(ticks) >= 3:
+                return ticks
+    step = 10 ** math.floor(math.log10(hi - lo))
+    for m in (0.1, 0.2, 0.5, 1.0):
+        if (hi - lo) / (m * step) <= 7:
             step *= m
             break
-    return [t for t in np.arange(math.ceil(lo / step) * step, hi + step / 2, step)]
+    return [float(t) for t in np.arange(math.ceil(lo / step) * step, hi + step / 2, step) if lo <= t <= hi]
 
 
 def _marker(draw, x, y, kind, colour, r=4):
@@ -339,7 +331,7 @@ def _marker(draw, x, y, kind, colour, r=4):
 def draw_panel(draw, font, box, series, xkey, ykey, xlog, ylog, title, xlabel, ylabel):
     """One axes: ``series`` is [(label, colour, marker, rows)]; x and y from row keys."""
     left, top, right, bottom = box
-    px0, py0, px1, py1 = left + 58, top + 22, right - 10, bottom - 36
+    px0, py0, px1, py1 = left + 62, top + 24, right - 14, bottom - 40
     xs = [r[xkey] for *_, rows in series for r in rows]
     ys = [r[ykey] for *_, rows in series for r in rows]
     xlo, xhi, ylo, yhi = min(xs), max(xs), min(ys), max(ys)
@@ -384,10 +376,13 @@ def write_figure(path: Path, rows: list[dict]) -> None:
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     methods = list(dict.fromkeys(r["method"] for r in rows))
     style = {m: (COLOURS[i % len(COLOURS)], MARKERS[i % len(MARKERS)]) for i, m in enumerate(methods)}
-    panel_w, panel_h, legend_h = 420, 300, 26 * math.ceil(len(methods) / 3) + 10
+    panel_w, panel_h, legend_h = 440, 320, 26 * math.ceil(len(methods) / 3) + 10
     image = Image.new("RGB", (3 * panel_w, len(scenes) * panel_h + legend_h), "white")
     draw = ImageDraw.Draw(image)
-    font = ImageFont.load_default()
+    try:
+        font = ImageFont.load_default(size=13)
+    except (TypeError, OSError):  # Pillow < 10.1, or without FreeType: the small bitmap font
+        font = ImageFont.load_default()
     panels = (("elements", "relative_mse", True, True, "relative MSE vs elements", "elements", "relMSE"),
               ("elements", "ssim", True, False, "SSIM vs elements", "elements", "SSIM"),
               ("seconds", "relative_mse", True, True, "relative MSE vs seconds", "seconds", "relMSE"))
@@ -413,6 +408,9 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=None,
                         help="default: figures/ (with --quick: accuracy_quick/ in the current folder)")
     parser.add_argument("--quick", action="store_true", help="a smoke test: coarse, loose, two values per curve")
+    parser.add_argument("--save-rows", type=Path, default=None, help="also write every run's numbers as JSON here")
+    parser.add_argument("--plot-only", type=Path, default=None,
+                        help="redraw the table and figure from --save-rows JSON instead of solving")
     parser.add_argument("--search", action="store_true",
                         help="find the thresholds of THRESHOLDS anew (refinement phase only) and print them")
     args = parser.parse_args(argv)
@@ -421,7 +419,7 @@ def main(argv=None) -> int:
         settings = SolverSettings()
         table = {}
         for name in args.scenes:
-            base = scaled(hemirad.load_scene(name), ELEMENT_SCALE)
+            base = hemirad.load_scene(name).with_element_sizes_scaled(ELEMENT_SCALE)
             initial = build_mesh(base).num_elements
             targets = [round(initial * f) for f in TARGET_FACTORS]
             print(f"{name}: {initial} initial elements, targets {targets}", flush=True)
@@ -440,7 +438,12 @@ def main(argv=None) -> int:
         settings = SolverSettings(resolution=64, refine_shots=20, unshot_fraction=0.2, max_elements=4000)
         values = lambda name, method: sweep(name, method)[:1]  # noqa: E731
     start = time.perf_counter()
-    rows = run_study(args.scenes, METHODS, settings, ELEMENT_SCALE, values)
+    if args.plot_only:
+        rows = json.loads(args.plot_only.read_text())
+    else:
+        rows = run_study(args.scenes, METHODS, settings, ELEMENT_SCALE, values)
+    if args.save_rows:
+        args.save_rows.write_text(json.dumps(rows, indent=1) + "\n")
     out = args.out or (Path("accuracy_quick") if args.quick else ROOT / "figures")
     out.mkdir(parents=True, exist_ok=True)
     write_table(out / "accuracy.md", rows, settings, args)

@@ -22,7 +22,6 @@ import torch
 import hemirad
 from hemirad import metrics, reference
 from hemirad.meshing import build_mesh
-from hemirad.render import render_view
 from hemirad.scene import Camera, Material, Quad, Scene
 
 from patches import closed_box
