@@ -28,7 +28,9 @@ class ShotContext:
         form_factors: (T,) F_sj.
         received: (T, 3) the radiosity this shot gives each element.
         luminance_per_form_factor: (T,) d(luminance of received)/dF_sj.
-        jacobian: (T, 3) dF_sj/dc (interior and/or shadow-edge terms), when the criterion needs it.
+        jacobian: (T, 3) dF_sj/dc (interior and/or shadow-edge terms), when the criterion
+            needs it; zero outside ``candidates``.
+        candidates: (T,) bool, the receivers this pass of the shot judges; None for all.
     """
 
     mesh: Mesh
@@ -39,6 +41,7 @@ class ShotContext:
     received: torch.Tensor
     luminance_per_form_factor: torch.Tensor
     jacobian: torch.Tensor | None = None
+    candidates: torch.Tensor | None = None
 
 
 def gradient_score(ctx: ShotContext) -> torch.Tensor:

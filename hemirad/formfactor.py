@@ -71,10 +71,9 @@ def decode_items(items: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         element (3R, R) int64: the element seen (-1 where nothing is seen);
         front (3R, R) bool: the pixel sees the front of an element.
     """
-    raw = torch.from_numpy(items.astype(np.int64))
-    element = (raw & (BACK_FACE_BIT - 1)) - 1
-    front = (raw > 0) & (raw < BACK_FACE_BIT)
-    return element, front
+    element = (items & np.uint32(BACK_FACE_BIT - 1)).astype(np.int64) - 1
+    front = (items != 0) & (items < np.uint32(BACK_FACE_BIT))
+    return torch.from_numpy(element), torch.from_numpy(front)
 
 
 def element_form_factors(element: torch.Tensor, front: torch.Tensor, weights: torch.Tensor,
@@ -95,32 +94,33 @@ class HemicubeFormFactors:
     """Form factors from any element of a mesh to all of them, by hemicube rendering.
 
     Args:
-        corners: (T, 3, 3) triangle vertices, counter-clockwise seen from the front.
+        vertices: (V, 3) positions; triangles: (T, 3) vertex indices, counter-clockwise
+            seen from the front.
         resolution: hemicube resolution R.
+        cull: draw each hemicube face only the triangles in its frustum (same result, faster).
     Attributes:
         seconds: time spent in the torch part (decoding and summing), beside the
             hemicube's own ``raster_seconds`` and ``readback_seconds``.
     """
 
-    def __init__(self, corners: torch.Tensor, resolution: int):
+    def __init__(self, vertices: torch.Tensor, triangles: torch.Tensor, resolution: int, cull: bool = True):
         self.weights = delta_form_factors(resolution)
-        flat = corners.reshape(-1, 3)
-        diagonal = float((flat.max(0).values - flat.min(0).values).norm())
+        diagonal = float((vertices.max(0).values - vertices.min(0).values).norm())
         # The eye sits just off the shooter so that its own plane (and coplanar neighbours)
         # falls below every face's field of view; depth is linear, so a close near plane is safe.
         self.eye_offset = self.near = 1e-6 * diagonal
         self.far = 1.01 * diagonal
-        self.hemicube = Hemicube(resolution)
-        self.set_geometry(corners)
+        self.hemicube = Hemicube(resolution, cull)
+        self.set_geometry(vertices, triangles)
         self.seconds = 0.0
 
-    def set_geometry(self, corners: torch.Tensor) -> None:
-        """Replace the triangles (after refinement); they must stay inside the first ones' bounds."""
-        self.corners = corners
+    def set_geometry(self, vertices: torch.Tensor, triangles: torch.Tensor) -> None:
+        """Replace the mesh (after refinement); it must stay inside the first one's bounds."""
+        self.corners = corners = vertices[triangles]
         cross = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
         self.normals = cross / cross.norm(dim=1, keepdim=True)
         self.centroids = corners.mean(dim=1)
-        self.hemicube.set_geometry(corners)
+        self.hemicube.set_geometry(vertices, triangles)
 
     def close(self) -> None:
         self.hemicube.release()

@@ -45,6 +45,11 @@ class GLContext:
         cls.get()
         return cls._instance.renderer
 
+    @classmethod
+    def is_software(cls) -> bool:
+        """Whether the renderer runs on the CPU (Mesa's llvmpipe or softpipe)."""
+        return any(name in cls.renderer_name().lower() for name in ("llvmpipe", "softpipe", "software"))
+
 
 def _load_triton_first() -> None:
     """Import triton, when installed, before Mesa loads its own LLVM into the process.

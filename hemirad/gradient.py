@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import torch
 from torch.func import jacfwd
 
-from .formfactor import hemicube_directions
+from .formfactor import element_form_factors, hemicube_directions
 from .hemicube import FACES, face_viewports
 
 # PyTorch's own forward-mode set-up scripts its decompositions on first use and warns that
@@ -42,6 +42,32 @@ def pixel_faces(resolution: int) -> torch.Tensor:
     return rows
 
 
+@lru_cache(maxsize=8)
+def pixel_directions(resolution: int) -> torch.Tensor:
+    """(3, P) ``hemicube_directions`` flattened, components first: per-pixel arithmetic
+    then runs over contiguous rows. Do not modify (cached)."""
+    return hemicube_directions(resolution).reshape(-1, 3).T.contiguous()
+
+
+@lru_cache(maxsize=8)
+def neighbour_pairs(resolution: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every pair of 4-neighbour pixels within one face of the atlas (flattened indices).
+
+    Returns:
+        a, b (M,) int64 with b right of or above a, and step (M, 2) float64, the unit
+        image-plane step from a to b. Do not modify (cached).
+    """
+    R = resolution
+    grid = torch.arange(3 * R * R).reshape(3 * R, R)
+    rows = pixel_faces(R)
+    same_face = rows[:-1] == rows[1:]
+    horizontal = (grid[:, :-1].reshape(-1), grid[:, 1:].reshape(-1))
+    vertical = (grid[:-1][same_face].reshape(-1), grid[1:][same_face].reshape(-1))
+    step = torch.cat([torch.tensor([[1.0, 0.0]], dtype=torch.float64).expand(len(horizontal[0]), 2),
+                      torch.tensor([[0.0, 1.0]], dtype=torch.float64).expand(len(vertical[0]), 2)])
+    return torch.cat([horizontal[0], vertical[0]]), torch.cat([horizontal[1], vertical[1]]), step
+
+
 @dataclass
 class ShotView:
     """What one hemicube render saw, as detached tensors (P = 3R^2 pixels, flattened).
@@ -52,7 +78,8 @@ class ShotView:
         element: (P,) element seen by each pixel, -1 for none.
         front: (P,) bool, the pixel sees an element's front.
         weight: (P,) delta form factor of each pixel.
-        hit: (P, 3) world point each pixel sees (ray-plane intersection; junk where element < 0).
+        normals: (T, 3) every element's unit normal.
+        distance: (T,) n_j . (p_j - eye): each element's plane seen from the eye.
         resolution: R.
     """
 
@@ -61,30 +88,48 @@ class ShotView:
     element: torch.Tensor
     front: torch.Tensor
     weight: torch.Tensor
-    hit: torch.Tensor
+    normals: torch.Tensor
+    distance: torch.Tensor
     resolution: int
 
     @staticmethod
     def from_render(element: torch.Tensor, front: torch.Tensor, weight: torch.Tensor, eye, frame,
                     normals: torch.Tensor, points: torch.Tensor) -> "ShotView":
-        """Reconstruct the hit points of an item atlas.
+        """Wrap an item atlas with what reconstructs its hit points.
 
         Args:
             element, front, weight: (3R, R) from ``formfactor.decode_items`` / ``delta_form_factors``.
             eye: (3,) and frame: (3, 3) as given to ``Hemicube.render``.
             normals, points: (T, 3) every element's unit normal and a point on its plane.
         """
-        R = element.shape[1]
         eye = torch.as_tensor(eye, dtype=torch.float64)
-        frame = torch.as_tensor(frame, dtype=torch.float64)
-        directions = (hemicube_directions(R) @ frame).reshape(-1, 3)  # world, unnormalised
-        element = element.reshape(-1)
-        seen = element.clamp(min=0)
-        n = normals[seen]
-        # Exact: the pixel's ray meets the plane of the element it sees.
-        t = ((points[seen] - eye) * n).sum(1) / (directions * n).sum(1)
-        hit = eye + t[:, None] * directions
-        return ShotView(eye, frame, element, front.reshape(-1), weight.reshape(-1), hit, R)
+        return ShotView(eye, torch.as_tensor(frame, dtype=torch.float64), element.reshape(-1),
+                        front.reshape(-1), weight.reshape(-1), normals, ((points - eye) * normals).sum(1),
+                        element.shape[1])
+
+    def hits(self, pixels: torch.Tensor) -> torch.Tensor:
+        """(3, N) the world points the given pixels (N,) see, components first.
+
+        Exact: the pixel's ray meets the plane of the element it sees. A pass that needs few
+        pixels (a later pass of a refining shot) computes only those; one that needs many
+        computes every pixel's once, without the gathers, and indexes that.
+        """
+        if len(pixels) > len(self.element) // 8:
+            return self._all_hits[:, pixels]
+        return self._hits(pixels, self.frame.T @ pixel_directions(self.resolution)[:, pixels])
+
+    @cached_property
+    def _all_hits(self) -> torch.Tensor:
+        return self._hits(slice(None), self.frame.T @ pixel_directions(self.resolution))
+
+    def _hits(self, pixels, directions: torch.Tensor) -> torch.Tensor:
+        k = self.element[pixels].clamp(min=0)
+        return self.eye[:, None] + (self.distance[k] / (directions * self.normals_by_component[:, k]).sum(0)) * directions
+
+    @cached_property
+    def normals_by_component(self) -> torch.Tensor:
+        """(3, T) the element normals, components first (contiguous)."""
+        return self.normals.T.contiguous()
 
 
 @dataclass
@@ -92,7 +137,7 @@ class ReceiverPatches:
     """The receiver patch behind every front-facing pixel of a render (Q pixels), frozen.
 
     Attributes:
-        hit: (Q, 3) world point y_q; element: (Q,) receiver j; normal: (Q, 3) n_j.
+        hit: (3, Q) world point y_q; element: (Q,) receiver j; normal: (3, Q) n_j.
         shooter_normal: (3,) n_s.
         scale: (Q,) w_q / kernel_q(c0), so that K_q(c0) is the hemicube's own weight w_q:
             the patch area dA_q (and pi) are defined by it rather than recomputed.
@@ -105,10 +150,14 @@ class ReceiverPatches:
     scale: torch.Tensor
 
     @staticmethod
-    def from_view(view: ShotView, normals: torch.Tensor) -> "ReceiverPatches":
-        mask = view.front
-        hit, element = view.hit[mask], view.element[mask]
-        patches = ReceiverPatches(hit, element, normals[element], view.frame[2], view.weight[mask])
+    def from_view(view: ShotView, wanted: torch.Tensor | None = None) -> "ReceiverPatches":
+        """The patches of the front-facing pixels, or only of those that see an element marked
+        in ``wanted`` (T,) bool."""
+        mask = view.front if wanted is None else view.front & wanted[view.element.clamp(min=0)]
+        pixels = mask.nonzero().reshape(-1)
+        element = view.element[pixels]
+        patches = ReceiverPatches(view.hits(pixels), element, view.normals_by_component[:, element], view.frame[2],
+                                  view.weight[pixels])
         patches.scale = patches.scale / point_to_patch_kernel(view.eye, patches)
         return patches
 
@@ -116,9 +165,9 @@ class ReceiverPatches:
 def point_to_patch_kernel(c: torch.Tensor, patches: ReceiverPatches) -> torch.Tensor:
     """(Q,) (n_s . (y - c)) (n_j . (c - y)) / |y - c|^4 for every patch (the form factor
     kernel without pi and dA_q)."""
-    r = patches.hit - c
-    r2 = (r * r).sum(1)
-    return (r * patches.shooter_normal).sum(1) * -(r * patches.normal).sum(1) / (r2 * r2)
+    r = patches.hit - c[:, None]  # (3, Q)
+    r2 = (r * r).sum(0)
+    return (patches.shooter_normal @ r) * -(r * patches.normal).sum(0) / (r2 * r2)
 
 
 def interior_form_factors(c: torch.Tensor, patches: ReceiverPatches, num_elements: int) -> torch.Tensor:
@@ -154,7 +203,8 @@ class OcclusionPairs:
     weight: torch.Tensor
 
 
-def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor) -> OcclusionPairs:
+def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
+                    wanted: torch.Tensor | None = None) -> OcclusionPairs:
     """Find the 4-neighbour pixel pairs within one face that straddle an occluding edge.
 
     A pair qualifies when the pixels see different elements, the farther one F is seen from
@@ -166,51 +216,62 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor)
     Args:
         view: one render.
         normals, points: (T, 3) element unit normals and points on their planes.
+        wanted: (T,) bool, optional: only pairs whose farther element is marked.
     """
     R = view.resolution
-    grid = torch.arange(3 * R * R).reshape(3 * R, R)
-    rows = pixel_faces(R)
-    horizontal = (grid[:, :-1].reshape(-1), grid[:, 1:].reshape(-1))
-    same_face = rows[:-1] == rows[1:]
-    vertical = (grid[:-1][same_face].reshape(-1), grid[1:][same_face].reshape(-1))
-    a = torch.cat([horizontal[0], vertical[0]])
-    b = torch.cat([horizontal[1], vertical[1]])
-    step = torch.cat([torch.tensor([[1.0, 0.0]]).expand(len(horizontal[0]), 2),
-                      torch.tensor([[0.0, 1.0]]).expand(len(vertical[0]), 2)]).to(torch.float64)
-
+    a, b, step = neighbour_pairs(R)
+    if wanted is not None:  # first the few pairs that touch a wanted element's pixel
+        seen = view.element >= 0
+        wanted_pixel = seen & wanted[view.element.clamp(min=0)]
+        pair = (wanted_pixel[a] | wanted_pixel[b]).nonzero().reshape(-1)
+        a, b = a[pair], b[pair]
     ea, eb = view.element[a], view.element[b]
-    keep = (ea >= 0) & (eb >= 0) & (ea != eb)
-    a, b, step, ea, eb = a[keep], b[keep], step[keep], ea[keep], eb[keep]
-    da = (view.hit[a] - view.eye).norm(dim=1)
-    db = (view.hit[b] - view.eye).norm(dim=1)
-    a_near = da < db
-    near = torch.where(a_near, a, b)
+    keep = ((ea != eb) & (ea >= 0) & (eb >= 0)).nonzero().reshape(-1)
+    pair = keep if wanted is None else pair[keep]
+    a, b, ea, eb = a[keep], b[keep], ea[keep], eb[keep]
+    # Most such pairs are coplanar neighbours on a finely meshed surface: everything up to
+    # the plane tests runs over all of them, in components-first layout, with each
+    # element's plane n . x = offset and the eye's side of it computed once.
+    offset = (points * normals).sum(1)  # (T,)
+    eye_side = torch.sign(normals @ view.eye - offset)  # (T,)
+
+    normals_by_component = normals.T.contiguous()
+
+    def side(X, k):  # signed distance of X (3, K) from element k's plane, positive on the eye's side
+        return ((normals_by_component[:, k] * X).sum(0) - offset[k]) * eye_side[k]
+
+    Xa, Xb = view.hits(a), view.hits(b)  # (3, K)
+    da2 = ((Xa - view.eye[:, None]) ** 2).sum(0)
+    db2 = ((Xb - view.eye[:, None]) ** 2).sum(0)
+    a_near = da2 < db2
+    b_behind_a, a_before_b = side(Xb, ea), side(Xa, eb)
+    far_behind_near = torch.where(a_near, b_behind_a, a_before_b)  # X_F from N's plane
+    near_before_far = torch.where(a_near, a_before_b, b_behind_a)  # X_N from F's plane
     far = torch.where(a_near, b, a)
-    axis = torch.where(a_near[:, None], step, -step)  # from N's pixel towards F's
+    tol = 1e-7 * torch.maximum(da2, db2).sqrt()
+    occludes = view.front[far] & (far_behind_near < -tol) & (near_before_far > tol)
+    if wanted is not None:
+        occludes &= wanted[torch.where(a_near, eb, ea)]
+    occludes = occludes.nonzero().reshape(-1)
+    a_near, far = a_near[occludes], far[occludes]
+    near = torch.where(a_near, a[occludes], b[occludes])
+    axis = torch.where(a_near[:, None], step[pair[occludes]], -step[pair[occludes]])  # from N's pixel towards F's
     en, ef = view.element[near], view.element[far]
-    Xn, Xf = view.hit[near], view.hit[far]
-
-    def side(X, k):  # signed distance of X from element k's plane, positive on the eye's side
-        n = normals[k]
-        eye_side = torch.sign(((view.eye - points[k]) * n).sum(1))
-        return ((X - points[k]) * n).sum(1) * eye_side
-
-    tol = 1e-7 * (Xf - view.eye).norm(dim=1)
-    occludes = view.front[far] & (side(Xf, en) < -tol) & (side(Xn, ef) > tol)
-    near, far, en, ef = near[occludes], far[occludes], en[occludes], ef[occludes]
+    Xa, Xb = Xa[:, occludes].T, Xb[:, occludes].T  # (K, 3)
+    to_near = torch.where(a_near[:, None], Xa, Xb) - view.eye
+    to_far = torch.where(a_near[:, None], Xb, Xa) - view.eye
     # Both parallax points lie on the ray between the two pixel centres: taking each pixel's
     # own hit point would add the image-plane offset between them (one pixel, of either
     # sign) to the parallax, a bias that does not shrink relative to the edge term as the
     # eye moves along the view axis.
-    ray = 0.5 * (view.hit[near] - view.eye) / (view.hit[near] - view.eye).norm(dim=1, keepdim=True)
-    ray = ray + 0.5 * (view.hit[far] - view.eye) / (view.hit[far] - view.eye).norm(dim=1, keepdim=True)
+    ray = 0.5 * to_near / to_near.norm(dim=1, keepdim=True) + 0.5 * to_far / to_far.norm(dim=1, keepdim=True)
 
     def on_plane(k):
         n = normals[k]
         return view.eye + (((points[k] - view.eye) * n).sum(1) / (ray * n).sum(1))[:, None] * ray
 
     weight = 0.5 * (view.weight[near] + view.weight[far])
-    return OcclusionPairs(on_plane(en), on_plane(ef), ef, axis[occludes], rows[near // R], weight)
+    return OcclusionPairs(on_plane(en), on_plane(ef), ef, axis, pixel_faces(R)[near // R], weight)
 
 
 def face_axes(frame: torch.Tensor) -> torch.Tensor:
@@ -245,18 +306,24 @@ def shadow_edge_form_factors(c: torch.Tensor, view: ShotView, pairs: OcclusionPa
 
 
 def form_factor_jacobian(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
-                         interior: bool = True, shadow_edges: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+                         interior: bool = True, shadow_edges: bool = True,
+                         wanted: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """F_sj and dF_sj/dc for every element, by forward-mode autograd.
 
     Args:
         view: one render; normals, points: (T, 3) element planes.
         interior, shadow_edges: which terms to include (for accuracy studies).
+        wanted: (T,) bool, optional: the elements whose gradient is needed. Only their
+            pixels and edges enter the differentiated function, so the cost follows their
+            share of the image; J is zero in the other rows, and the same as without
+            ``wanted`` in these.
     Returns:
-        F (T,) the hemicube form factors, and J (T, 3) their gradient with respect to the eye.
+        F (T,) the hemicube form factors (every element), and J (T, 3) their gradient with
+        respect to the eye.
     """
     T = len(normals)
-    patches = ReceiverPatches.from_view(view, normals)
-    pairs = occlusion_pairs(view, normals, points) if shadow_edges else None
+    patches = ReceiverPatches.from_view(view, wanted)
+    pairs = occlusion_pairs(view, normals, points, wanted) if shadow_edges else None
 
     def F(c):
         total = torch.zeros(T, dtype=torch.float64)
@@ -264,9 +331,7 @@ def form_factor_jacobian(view: ShotView, normals: torch.Tensor, points: torch.Te
             total = total + interior_form_factors(c, patches, T)
         if pairs is not None:
             total = total + shadow_edge_form_factors(c, view, pairs, T)
-        return total, total
+        return total
 
-    J, value = jacfwd(F, has_aux=True)(view.eye)
-    if not interior:  # the value is the hemicube's F whatever the gradient includes
-        value = interior_form_factors(view.eye, patches, T)
-    return value, J
+    J = jacfwd(F)(view.eye)
+    return element_form_factors(view.element, view.front, view.weight, T), J

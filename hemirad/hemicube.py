@@ -9,6 +9,12 @@ Rows run bottom-up inside each face, as GL reads them; ``formfactor.hemicube_dir
 uses the same layout, so nothing is ever flipped. A pixel holds 0 where it sees nothing,
 ``id + 1`` where it sees the front of element ``id``, and ``(id + 1) | BACK_FACE_BIT``
 where it sees its back (which occludes but receives nothing).
+
+Each face draws only the triangles that can reach its frustum (``face_visibility``): a
+triangle whose three vertices all lie outside one of the frustum's planes covers none of
+its pixels, so leaving it out changes no pixel, and each triangle is then drawn about once
+instead of five times. The kept triangles keep their relative order, so depth ties resolve
+as in a full draw, and the item atlas is the one an unculled render gives, bit for bit.
 """
 from __future__ import annotations
 
@@ -51,11 +57,12 @@ _FRAGMENT_SHADER = """
 #version 330
 uniform float near;
 uniform float far;
+uniform int first_item;  // the draw's first triangle's position in the drawn list
 in float view_depth;
 out uint item;
 void main() {
     gl_FragDepth = (view_depth - near) / (far - near);
-    item = uint(gl_PrimitiveID + 1) | (gl_FrontFacing ? 0u : 0x80000000u);
+    item = uint(first_item + gl_PrimitiveID + 1) | (gl_FrontFacing ? 0u : 0x80000000u);
 }
 """
 
@@ -87,52 +94,111 @@ def _frustum(left, right, bottom, top, near, far) -> np.ndarray:
     ])
 
 
+def _frustum_planes() -> tuple[np.ndarray, np.ndarray]:
+    """Inward normals, in the hemicube's local frame, of the planes through the eye that
+    bound each face's view: (5, 4, 3) for |right| <= forward and bottom <= up <= forward
+    (all in units of forward distance), and (5, 3) the forward axes for the near plane."""
+    sides, forwards = [], []
+    for forward, right, up, bottom in FACES:
+        f, r, u = (np.asarray(v, dtype=np.float64) for v in (forward, right, up))
+        sides.append([f - r, f + r, f - u, u - bottom * f])
+        forwards.append(f)
+    return np.asarray(sides), np.asarray(forwards)
+
+
+_SIDE_PLANES, _FORWARDS = _frustum_planes()
+
+
+def face_visibility(local: np.ndarray, triangles: np.ndarray, near: float) -> np.ndarray:
+    """Which triangles may cover pixels of each face: (5, T) bool.
+
+    A triangle is left out of a face when its three vertices all lie outside one plane of
+    that face's frustum (a side plane through the eye, or the near plane): the frustum is
+    convex, so such a triangle covers none of its pixels. Vertices must be clearly outside
+    (by a margin far above float32 rounding in GL's own clipping), so the test never drops
+    a triangle that GL would draw.
+
+    Args:
+        local: (V, 3) float64 vertex positions relative to the eye, in the local frame.
+        triangles: (T, 3) vertex indices.
+        near: the near-plane distance.
+    """
+    margin = 1e-5 * np.abs(local).sum(axis=1)  # (V,)
+    side = (local @ _SIDE_PLANES.reshape(-1, 3).T).reshape(-1, 5, 4) < -margin[:, None, None]  # (V, 5, 4)
+    behind = (local @ _FORWARDS.T) < near - margin[:, None]  # (V, 5)
+    outside = np.concatenate([side, behind[:, :, None]], axis=2)  # (V, 5, 5): face, plane
+    codes = np.packbits(outside.reshape(len(local), 25), axis=1, bitorder="little")  # (V, 4) uint8
+    codes = codes.view(np.uint32).reshape(-1)  # bit 5 f + k: outside plane k of face f
+    common = codes[triangles[:, 0]] & codes[triangles[:, 1]] & codes[triangles[:, 2]]  # (T,)
+    face_bits = np.uint32(0b11111) << (5 * np.arange(5, dtype=np.uint32))  # (5,)
+    return (common[None, :] & face_bits[:, None]) == 0
+
+
 class Hemicube:
-    """Renders hemicube item buffers of one triangle soup.
+    """Renders hemicube item buffers of one indexed triangle mesh.
 
     Args:
         resolution: R, the top face's width in pixels (even).
+        cull: leave out of each face the triangles outside its frustum (the default). The
+            atlas is the same without it (every face then draws every triangle); the
+            option exists to show that.
     Attributes:
-        raster_seconds, readback_seconds: accumulated time in drawing and in read-back.
+        raster_seconds, readback_seconds: accumulated time in drawing (culling included) and
+            in read-back.
+        drawn_triangles: triangles drawn by the last render, over its five faces.
     """
 
-    def __init__(self, resolution: int):
+    def __init__(self, resolution: int, cull: bool = True):
         if resolution < 2 or resolution % 2:
             raise ValueError(f"hemicube resolution must be an even number >= 2, got {resolution}")
         self.resolution = resolution
+        self.cull = cull
         self.ctx = GLContext.get()
         self.program = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
         size = (resolution, 3 * resolution)
         self._color = self.ctx.renderbuffer(size, components=1, dtype="u4")
         self._depth = self.ctx.depth_renderbuffer(size)
         self.fbo = self.ctx.framebuffer(color_attachments=[self._color], depth_attachment=self._depth)
-        self._items = np.empty((3 * resolution, resolution), dtype=np.uint32)
-        self._vbo = self._vao = None
-        self.num_triangles = 0
+        self._drawn = np.empty((3 * resolution, resolution), dtype=np.uint32)  # as read back
+        self._vbo = self.ctx.buffer(reserve=12, dynamic=True)
+        self._ibo = self.ctx.buffer(reserve=12, dynamic=True)
+        self._vao = self.ctx.vertex_array(self.program, [(self._vbo, "3f", "position")],
+                                          index_buffer=self._ibo, index_element_size=4)
+        self._vertices = np.zeros((0, 3))
+        self._triangles = np.zeros((0, 3), dtype=np.uint32)
+        self.num_triangles = self.drawn_triangles = 0
         self.raster_seconds = self.readback_seconds = 0.0
 
-    def set_geometry(self, corners: torch.Tensor) -> None:
-        """Upload the triangles to draw; item ids are their row indices.
+    def set_geometry(self, vertices: torch.Tensor, triangles: torch.Tensor) -> None:
+        """Upload the mesh to draw; item ids are the triangles' row indices.
 
         Args:
-            corners: (T, 3, 3) vertex positions, counter-clockwise seen from the front.
+            vertices: (V, 3) positions.
+            triangles: (T, 3) vertex indices, counter-clockwise seen from the front.
         """
-        self.release_geometry()
-        data = np.ascontiguousarray(corners.detach().cpu().numpy(), dtype=np.float32)
-        self._vbo = self.ctx.buffer(data.tobytes())
-        self._vao = self.ctx.vertex_array(self.program, [(self._vbo, "3f", "position")])
-        self.num_triangles = len(data)
-
-    def release_geometry(self) -> None:
-        for obj in (self._vao, self._vbo):
-            if obj is not None:
-                obj.release()
-        self._vbo = self._vao = None
+        self._vertices = vertices.detach().cpu().numpy().astype(np.float64, copy=False)
+        self._triangles = triangles.detach().cpu().numpy().astype(np.uint32)
+        self.num_triangles = len(self._triangles)
+        _write(self._vbo, self._vertices.astype(np.float32))
+        if not self.cull:  # one list, drawn whole by every face
+            _write(self._ibo, self._triangles)
 
     def release(self) -> None:
-        self.release_geometry()
-        for obj in (self.fbo, self._color, self._depth, self.program):
+        for obj in (self._vao, self._vbo, self._ibo, self.fbo, self._color, self._depth, self.program):
             obj.release()
+
+    def _draw_lists(self, eye: np.ndarray, frame: np.ndarray, near: float) -> tuple[np.ndarray, list[tuple[int, int]]]:
+        """The triangles each face draws: their ids in drawing order (N,), and per face the
+        (first, count) range of that list it draws."""
+        T = self.num_triangles
+        if not self.cull:
+            return np.arange(T), [(0, T)] * len(FACES)
+        visible = face_visibility((self._vertices - eye) @ frame.T, self._triangles, near)
+        ids = [np.flatnonzero(v) for v in visible]
+        firsts = np.cumsum([0] + [len(i) for i in ids])
+        ids = np.concatenate(ids)
+        _write(self._ibo, self._triangles[ids])
+        return ids, [(int(firsts[f]), int(firsts[f + 1] - firsts[f])) for f in range(len(FACES))]
 
     def render(self, eye: np.ndarray, frame: np.ndarray, near: float, far: float) -> np.ndarray:
         """Draw the five faces seen from ``eye``.
@@ -142,9 +208,12 @@ class Hemicube:
             frame: (3, 3) rows t, b, n of the local frame (``tangent_frame``), n the normal.
             near, far: clip distances; everything between them along each face's axis is seen.
         Returns:
-            (3R, R) uint32 item atlas (see the module docstring). Overwritten by the next call.
+            (3R, R) uint32 item atlas (see the module docstring); without culling, a buffer
+            the next call overwrites.
         """
         start = time.perf_counter()
+        eye = np.asarray(eye, dtype=np.float64)
+        ids, ranges = self._draw_lists(eye, frame, near)
         ctx = self.ctx
         self.fbo.use()
         ctx.enable(moderngl.DEPTH_TEST)
@@ -153,20 +222,36 @@ class Hemicube:
         self.program["near"].value = near
         self.program["far"].value = far
         translate = np.eye(4)
-        translate[:3, 3] = -np.asarray(eye, dtype=np.float64)
-        for (forward, right, up, bottom), viewport in zip(FACES, face_viewports(self.resolution)):
+        translate[:3, 3] = -eye
+        for (forward, right, up, bottom), viewport, (first, count) in zip(FACES, face_viewports(self.resolution), ranges):
+            if count == 0:
+                continue
             rotation = np.eye(4)
             rotation[:3, :3] = np.stack([np.asarray(right) @ frame, np.asarray(up) @ frame, -np.asarray(forward) @ frame])
             view = rotation @ translate
             mvp = _frustum(-near, near, bottom * near, near, near, far) @ view
             self.program["mvp"].write(mvp.T.astype(np.float32).tobytes())
             self.program["view"].write(view.T.astype(np.float32).tobytes())
+            self.program["first_item"].value = first
             ctx.viewport = viewport
-            if self._vao is not None:
-                self._vao.render(moderngl.TRIANGLES)
+            self._vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
         ctx.finish()
         mid = time.perf_counter()
-        self.fbo.read_into(self._items, components=1, dtype="u4")
+        self.fbo.read_into(self._drawn, components=1, dtype="u4")
+        self.drawn_triangles = sum(count for _, count in ranges)
+        items = self._drawn
+        if self.cull:  # position in the drawn list -> triangle id, keeping the back-face bit
+            lookup = np.concatenate([[0], ids + 1]).astype(np.uint32)
+            items = lookup[items & (BACK_FACE_BIT - 1)] | (items & BACK_FACE_BIT)
         self.raster_seconds += mid - start
         self.readback_seconds += time.perf_counter() - mid
-        return self._items
+        return items
+
+
+def _write(buffer: moderngl.Buffer, data: np.ndarray) -> None:
+    """Replace a buffer's content, growing it (to twice the need) when it is too small."""
+    data = np.ascontiguousarray(data)
+    if data.nbytes > buffer.size:
+        buffer.orphan(2 * data.nbytes)
+    if data.nbytes:
+        buffer.write(data.tobytes())

@@ -7,6 +7,7 @@ vertices never blends across a crease or between objects.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import torch
 
@@ -57,27 +58,29 @@ class Mesh:
     def num_elements(self) -> int:
         return len(self.triangles)
 
-    @property
+    # Meshes are never modified in place (splitting returns a new one), so the derived
+    # geometry below is computed once per mesh.
+    @cached_property
     def corners(self) -> torch.Tensor:
         """(T, 3, 3) the three vertex positions of every triangle."""
         return self.vertices[self.triangles]
 
-    @property
+    @cached_property
     def centroids(self) -> torch.Tensor:
         """(T, 3)"""
         return self.corners.mean(dim=1)
 
-    @property
+    @cached_property
     def _cross(self) -> torch.Tensor:
         c = self.corners
         return torch.linalg.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
 
-    @property
+    @cached_property
     def areas(self) -> torch.Tensor:
         """(T,)"""
         return 0.5 * self._cross.norm(dim=1)
 
-    @property
+    @cached_property
     def normals(self) -> torch.Tensor:
         """(T, 3) unit normals."""
         x = self._cross

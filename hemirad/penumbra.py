@@ -35,7 +35,7 @@ def visible_light_fraction(mesh: Mesh, emitting: torch.Tensor, points: torch.Ten
     frame = tangent_frame(normal.numpy(), np.array([1.0, 0.0, 0.0]) + np.array([0.0, 0.0, 1e-3]))
     hemicube = Hemicube(resolution)
     try:
-        hemicube.set_geometry(mesh.corners)
+        hemicube.set_geometry(mesh.vertices, mesh.triangles)
         out = torch.empty(len(points), dtype=torch.float64)
         for i, p in enumerate(points):
             eye = p + 1e-6 * diagonal * normal

@@ -44,14 +44,23 @@ class Refiner:
         """Which form-factor gradient the criterion needs: "full", "interior" or None."""
         return self.criterion.jacobian
 
+    def splittable(self, mesh: Mesh, shooter: int) -> torch.Tensor:
+        """(T,) bool: the receivers a shot from ``shooter`` may split, whatever their score:
+        under the depth limit, with children no smaller than ``min_area``, and not the
+        shooter (its own hemicube is being used)."""
+        o = self.options
+        out = (mesh.level < o.max_depth) & (mesh.areas / self.children >= o.min_area)
+        out[shooter] = False
+        return out
+
     def select(self, ctx: ShotContext) -> torch.Tensor:
-        """(T,) bool: receivers over the threshold that may still be split, largest first
-        when the element budget binds (the budget is never exceeded)."""
+        """(T,) bool: receivers over the threshold among the pass's candidates (by default
+        every ``splittable`` one), largest first when the element budget binds (it is never
+        exceeded)."""
         mesh, o = ctx.mesh, self.options
         score = self.criterion.score(ctx)
-        eligible = (score > self.threshold) & (mesh.level < o.max_depth)
-        eligible &= mesh.areas / self.children >= o.min_area
-        eligible[ctx.shooter] = False  # its own hemicube is being used
+        eligible = score > self.threshold
+        eligible &= self.splittable(mesh, ctx.shooter) if ctx.candidates is None else ctx.candidates
         room = (o.max_elements - mesh.num_elements) // (self.children - 1)
         if int(eligible.sum()) > room:
             candidates = torch.nonzero(eligible).reshape(-1)

@@ -35,7 +35,7 @@ def shot(point, polygons, resolution=256):
         ranges.append(slice(len(triangles), len(triangles) + 2))
         triangles += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
     mesh = Mesh(np.concatenate(vertices), triangles, range(len(triangles)), [0] * len(triangles))
-    ff = HemicubeFormFactors(mesh.corners, resolution)
+    ff = HemicubeFormFactors(mesh.vertices, mesh.triangles, resolution)
     try:
         element, front, eye, frame = ff.render(0)
     finally:
@@ -69,7 +69,7 @@ def test_interior_gradient_equals_finite_differences_of_the_same_function():
     view, normals, points, ranges = shot(EYES[0], [RECEIVER, BLOCKER], resolution=64)
     T = len(normals)
     _, J = form_factor_jacobian(view, normals, points, interior=True, shadow_edges=False)
-    patches = ReceiverPatches.from_view(view, normals)
+    patches = ReceiverPatches.from_view(view)
     step = 1e-5
     for axis in range(3):
         dc = torch.zeros(3, dtype=torch.float64)
@@ -115,3 +115,17 @@ def test_shadow_edge_term_makes_the_gradient_see_the_blocker(case):
         assert float(F[receiver].sum()) == pytest.approx(F_value, rel=0.01)
         assert relative_error(J[receiver].sum(0), reference) < 0.10
         assert relative_error(J_interior[receiver].sum(0), reference) > 0.50
+
+
+def test_gradient_of_some_elements_is_their_rows_of_the_full_gradient():
+    # The solver's later passes ask only for the new elements' gradients: the restricted
+    # computation must give exactly those rows (and the full F).
+    view, normals, points, ranges = shot(EYES[1], [RECEIVER, BLOCKER], resolution=64)
+    F_full, J_full = form_factor_jacobian(view, normals, points)
+    wanted = torch.zeros(len(normals), dtype=torch.bool)
+    wanted[ranges[0]] = True  # the receiver, with the blocker's shadow edge on it
+    F, J = form_factor_jacobian(view, normals, points, wanted=wanted)
+    assert torch.equal(F, F_full)
+    assert J_full[wanted].abs().sum() > 0 and J_full[~wanted].abs().sum() > 0
+    torch.testing.assert_close(J[wanted], J_full[wanted], rtol=1e-12, atol=1e-15)
+    assert not J[~wanted].any()

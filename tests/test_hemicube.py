@@ -1,0 +1,97 @@
+"""The hemicube renderer: per-face frustum culling changes no pixel."""
+import numpy as np
+import pytest
+import torch
+
+import hemirad
+from hemirad.formfactor import HemicubeFormFactors
+from hemirad.hemicube import FACES, face_visibility
+from hemirad.meshing import build_mesh
+from hemirad.refine import Refiner
+from hemirad.solver import ProgressiveSolver
+from hemirad.split import split_triangles
+
+
+def refined_mesh(name):
+    """A bundled scene's mesh with a patch of it split twice (pattern 2: T-vertices)."""
+    mesh = build_mesh(hemirad.load_scene(name))
+    for _ in range(2):
+        selected = torch.zeros(mesh.num_elements, dtype=torch.bool)
+        selected[::7] = True
+        mesh, _ = split_triangles(mesh, selected, "pattern2")
+    return mesh
+
+
+@pytest.mark.parametrize("name", ["cornell_box", "floating", "office"])
+def test_culled_render_gives_the_unculled_atlas_bit_for_bit(name):
+    mesh = refined_mesh(name)
+    culled = HemicubeFormFactors(mesh.vertices, mesh.triangles, 64)
+    full = HemicubeFormFactors(mesh.vertices, mesh.triangles, 64, cull=False)
+    try:
+        shooters = torch.linspace(0, mesh.num_elements - 1, 25).long().tolist()
+        for shooter in shooters:
+            element, front, _, _ = culled.render(shooter)
+            drawn = culled.hemicube.drawn_triangles
+            element_full, front_full, _, _ = full.render(shooter)
+            assert torch.equal(element, element_full) and torch.equal(front, front_full), shooter
+            assert torch.equal(culled.from_element(shooter), full.from_element(shooter))
+            # and the point of it: far fewer triangles drawn than five times all of them
+            assert full.hemicube.drawn_triangles == 5 * mesh.num_elements
+            assert drawn < 2.5 * mesh.num_elements
+    finally:
+        culled.close()
+        full.close()
+
+
+def test_refined_solve_is_the_same_with_and_without_culling():
+    scene = hemirad.load_scene("floating_coarse")
+    scene.refine.pattern = "pattern2"
+    results = []
+    for cull in (True, False):
+        mesh = build_mesh(scene)
+        emission = scene.emission_table()[mesh.material]
+        solver = ProgressiveSolver(mesh, scene.reflectance_table()[mesh.material], emission, 64,
+                                   Refiner(scene.refine, emission), cull=cull)
+        try:
+            solver.run(15, 0.0)
+        finally:
+            solver.close()
+        results.append((solver.mesh.triangles, solver.state.radiosity))
+    assert len(results[0][0]) > build_mesh(scene).num_elements  # refinement did split
+    assert torch.equal(results[0][0], results[1][0])
+    assert torch.equal(results[0][1], results[1][1])
+
+
+def _local(points):
+    return np.asarray(points, dtype=np.float64)
+
+
+def test_face_visibility_keeps_what_a_face_can_see_and_drops_the_rest():
+    near = 1e-3
+    vertices = _local([
+        [-0.2, -0.2, 1.0], [0.2, -0.2, 1.0], [0.0, 0.2, 1.0],     # straight up: top face only
+        [1.0, -0.1, 0.2], [1.0, 0.1, 0.2], [1.0, 0.0, 0.4],       # towards +x, low: +x side only
+        [0.0, 0.0, -1.0], [1.0, 0.0, -1.0], [0.0, 1.0, -1.0],     # below the horizon: no face
+        [-1.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 0.0, 2.0],       # spans top, +x and -x
+    ])
+    triangles = np.arange(12).reshape(4, 3)
+    visible = face_visibility(vertices, triangles, near)
+    assert visible.shape == (len(FACES), 4)
+    assert visible[:, 0].tolist() == [True, False, False, False, False]
+    assert visible[:, 1].tolist() == [False, True, False, False, False]
+    assert not visible[:, 2].any()
+    assert visible[0, 3] and visible[1, 3] and visible[2, 3]
+
+
+def test_face_visibility_never_drops_a_triangle_with_a_vertex_inside_a_face():
+    rng = np.random.default_rng(3)
+    vertices = rng.normal(size=(3000, 3))
+    triangles = rng.integers(0, len(vertices), size=(1000, 3))
+    visible = face_visibility(vertices, triangles, 1e-3)
+    for f, (forward, right, up, bottom) in enumerate(FACES):
+        depth = vertices @ np.asarray(forward, float)
+        x, y = vertices @ np.asarray(right, float), vertices @ np.asarray(up, float)
+        inside = (depth > 1e-3) & (np.abs(x) <= depth) & (y >= bottom * depth) & (y <= depth)
+        has_inside_vertex = inside[triangles].any(axis=1)
+        assert visible[f][has_inside_vertex].all()
+        assert not visible[f].all()  # and it does cull
