@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from .hemicube import BACK_FACE_BIT, FACES, Hemicube, face_viewports, tangent_frame
+from .mesh import Mesh
 
 
 @lru_cache(maxsize=8)
@@ -94,8 +95,7 @@ class HemicubeFormFactors:
     """Form factors from any element of a mesh to all of them, by hemicube rendering.
 
     Args:
-        vertices: (V, 3) positions; triangles: (T, 3) vertex indices, counter-clockwise
-            seen from the front.
+        mesh: the elements (triangles counter-clockwise seen from the front).
         resolution: hemicube resolution R.
         cull: draw each hemicube face only the triangles in its frustum (same result, faster).
     Attributes:
@@ -103,24 +103,22 @@ class HemicubeFormFactors:
             hemicube's own ``raster_seconds`` and ``readback_seconds``.
     """
 
-    def __init__(self, vertices: torch.Tensor, triangles: torch.Tensor, resolution: int, cull: bool = True):
+    def __init__(self, mesh: Mesh, resolution: int, cull: bool = True):
         self.weights = delta_form_factors(resolution)
-        diagonal = float((vertices.max(0).values - vertices.min(0).values).norm())
+        lo, hi = mesh.bounding_box()
+        diagonal = float((hi - lo).norm())
         # The eye sits just off the shooter so that its own plane (and coplanar neighbours)
         # falls below every face's field of view; depth is linear, so a close near plane is safe.
         self.eye_offset = self.near = 1e-6 * diagonal
         self.far = 1.01 * diagonal
         self.hemicube = Hemicube(resolution, cull)
-        self.set_geometry(vertices, triangles)
+        self.set_geometry(mesh)
         self.seconds = 0.0
 
-    def set_geometry(self, vertices: torch.Tensor, triangles: torch.Tensor) -> None:
+    def set_geometry(self, mesh: Mesh) -> None:
         """Replace the mesh (after refinement); it must stay inside the first one's bounds."""
-        self.corners = corners = vertices[triangles]
-        cross = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        self.normals = cross / cross.norm(dim=1, keepdim=True)
-        self.centroids = corners.mean(dim=1)
-        self.hemicube.set_geometry(vertices, triangles)
+        self.corners, self.normals, self.centroids = mesh.corners, mesh.normals, mesh.centroids
+        self.hemicube.set_geometry(mesh.vertices, mesh.triangles)
 
     def close(self) -> None:
         self.hemicube.release()

@@ -68,6 +68,31 @@ def neighbour_pairs(resolution: int) -> tuple[torch.Tensor, torch.Tensor, torch.
     return torch.cat([horizontal[0], vertical[0]]), torch.cat([horizontal[1], vertical[1]]), step
 
 
+@lru_cache(maxsize=8)
+def pixel_pairs(resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each pixel's pairs sit in ``neighbour_pairs``: (P,) the index of the pair with
+    its right-hand neighbour and (P,) that with the neighbour above, -1 where there is none
+    (the last column; the top row of a face). Do not modify (cached)."""
+    a, b, _ = neighbour_pairs(resolution)
+    P = 3 * resolution * resolution
+    right = torch.full((P,), -1, dtype=torch.int64)
+    up = torch.full((P,), -1, dtype=torch.int64)
+    index = torch.arange(len(a))
+    horizontal = b - a == 1
+    right[a[horizontal]] = index[horizontal]
+    up[a[~horizontal]] = index[~horizontal]
+    return right, up
+
+
+def pairs_touching(pixels: torch.Tensor, resolution: int) -> torch.Tensor:
+    """(M,) sorted indices into ``neighbour_pairs`` of the pairs that include any of ``pixels``."""
+    right, up = pixel_pairs(resolution)
+    R = resolution
+    found = torch.cat([right[pixels], right[(pixels - 1).clamp(min=0)][pixels >= 1],
+                       up[pixels], up[(pixels - R).clamp(min=0)][pixels >= R]])
+    return torch.unique(found[found >= 0])
+
+
 @dataclass
 class ShotView:
     """What one hemicube render saw, as detached tensors (P = 3R^2 pixels, flattened).
@@ -136,17 +161,30 @@ class ShotView:
 class ReceiverPatches:
     """The receiver patch behind every front-facing pixel of a render (Q pixels), frozen.
 
+    The patches are kept relative to the rendered eye c0, with the dot products that do not
+    depend on the eye precomputed, so that in the kernel the variable c enters only through
+    d = c - c0 in three small matrix-vector products: forward-mode AD then carries (3, Q)
+    tangents instead of the (3, 3, Q) of y - c, and |y - c|^2 suffers no cancellation at c0.
+
     Attributes:
-        hit: (3, Q) world point y_q; element: (Q,) receiver j; normal: (3, Q) n_j.
+        origin: (3,) c0.
+        offset: (3, Q) y_q - c0 for each pixel's world point y_q.
+        element: (Q,) receiver j; normal: (3, Q) n_j.
         shooter_normal: (3,) n_s.
+        facing: (Q,) n_s . (y_q - c0); receiver_facing: (Q,) n_j . (y_q - c0);
+        distance2: (Q,) |y_q - c0|^2.
         scale: (Q,) w_q / kernel_q(c0), so that K_q(c0) is the hemicube's own weight w_q:
             the patch area dA_q (and pi) are defined by it rather than recomputed.
     """
 
-    hit: torch.Tensor
+    origin: torch.Tensor
+    offset: torch.Tensor
     element: torch.Tensor
     normal: torch.Tensor
     shooter_normal: torch.Tensor
+    facing: torch.Tensor
+    receiver_facing: torch.Tensor
+    distance2: torch.Tensor
     scale: torch.Tensor
 
     @staticmethod
@@ -156,8 +194,11 @@ class ReceiverPatches:
         mask = view.front if wanted is None else view.front & wanted[view.element.clamp(min=0)]
         pixels = mask.nonzero().reshape(-1)
         element = view.element[pixels]
-        patches = ReceiverPatches(view.hits(pixels), element, view.normals_by_component[:, element], view.frame[2],
-                                  view.weight[pixels])
+        offset = view.hits(pixels) - view.eye[:, None]
+        normal = view.normals_by_component[:, element]
+        shooter_normal = view.frame[2]
+        patches = ReceiverPatches(view.eye, offset, element, normal, shooter_normal, shooter_normal @ offset,
+                                  (normal * offset).sum(0), (offset * offset).sum(0), view.weight[pixels])
         patches.scale = patches.scale / point_to_patch_kernel(view.eye, patches)
         return patches
 
@@ -165,9 +206,11 @@ class ReceiverPatches:
 def point_to_patch_kernel(c: torch.Tensor, patches: ReceiverPatches) -> torch.Tensor:
     """(Q,) (n_s . (y - c)) (n_j . (c - y)) / |y - c|^4 for every patch (the form factor
     kernel without pi and dA_q)."""
-    r = patches.hit - c[:, None]  # (3, Q)
-    r2 = (r * r).sum(0)
-    return (patches.shooter_normal @ r) * -(r * patches.normal).sum(0) / (r2 * r2)
+    d = c - patches.origin  # (3,)
+    towards_receiver = patches.facing - patches.shooter_normal @ d  # n_s . (y - c)
+    towards_shooter = d @ patches.normal - patches.receiver_facing  # n_j . (c - y)
+    r2 = patches.distance2 - 2.0 * (d @ patches.offset) + d @ d  # |y - c|^2
+    return towards_receiver * towards_shooter / (r2 * r2)
 
 
 def interior_form_factors(c: torch.Tensor, patches: ReceiverPatches, num_elements: int) -> torch.Tensor:
@@ -204,7 +247,7 @@ class OcclusionPairs:
 
 
 def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
-                    wanted: torch.Tensor | None = None) -> OcclusionPairs:
+                    wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None) -> OcclusionPairs:
     """Find the 4-neighbour pixel pairs within one face that straddle an occluding edge.
 
     A pair qualifies when the pixels see different elements, the farther one F is seen from
@@ -217,16 +260,25 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
         view: one render.
         normals, points: (T, 3) element unit normals and points on their planes.
         wanted: (T,) bool, optional: only pairs whose farther element is marked.
+        plane_ids: (T,) int64, optional (``Mesh.plane_ids``): pairs on one plane are
+            dropped before the plane tests, which would reject them anyway.
     """
     R = view.resolution
     a, b, step = neighbour_pairs(R)
-    if wanted is not None:  # first the few pairs that touch a wanted element's pixel
-        seen = view.element >= 0
-        wanted_pixel = seen & wanted[view.element.clamp(min=0)]
-        pair = (wanted_pixel[a] | wanted_pixel[b]).nonzero().reshape(-1)
+    if wanted is not None:  # first the pairs that touch a wanted element's pixel
+        wanted_pixel = ((view.element >= 0) & wanted[view.element.clamp(min=0)]).nonzero().reshape(-1)
+        if len(wanted_pixel) < len(view.element) // 16:  # few: found from the pixels
+            pair = pairs_touching(wanted_pixel, R)
+        else:
+            marked = torch.zeros(len(view.element), dtype=torch.bool)
+            marked[wanted_pixel] = True
+            pair = (marked[a] | marked[b]).nonzero().reshape(-1)
         a, b = a[pair], b[pair]
     ea, eb = view.element[a], view.element[b]
-    keep = ((ea != eb) & (ea >= 0) & (eb >= 0)).nonzero().reshape(-1)
+    keep = (ea != eb) & (ea >= 0) & (eb >= 0)
+    if plane_ids is not None:
+        keep &= plane_ids[ea.clamp(min=0)] != plane_ids[eb.clamp(min=0)]
+    keep = keep.nonzero().reshape(-1)
     pair = keep if wanted is None else pair[keep]
     a, b, ea, eb = a[keep], b[keep], ea[keep], eb[keep]
     # Most such pairs are coplanar neighbours on a finely meshed surface: everything up to
@@ -307,7 +359,8 @@ def shadow_edge_form_factors(c: torch.Tensor, view: ShotView, pairs: OcclusionPa
 
 def form_factor_jacobian(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
                          interior: bool = True, shadow_edges: bool = True,
-                         wanted: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                         wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
     """F_sj and dF_sj/dc for every element, by forward-mode autograd.
 
     Args:
@@ -317,13 +370,14 @@ def form_factor_jacobian(view: ShotView, normals: torch.Tensor, points: torch.Te
             pixels and edges enter the differentiated function, so the cost follows their
             share of the image; J is zero in the other rows, and the same as without
             ``wanted`` in these.
+        plane_ids: (T,) ``Mesh.plane_ids``, optional: speeds up finding shadow edges.
     Returns:
         F (T,) the hemicube form factors (every element), and J (T, 3) their gradient with
         respect to the eye.
     """
     T = len(normals)
     patches = ReceiverPatches.from_view(view, wanted)
-    pairs = occlusion_pairs(view, normals, points, wanted) if shadow_edges else None
+    pairs = occlusion_pairs(view, normals, points, wanted, plane_ids) if shadow_edges else None
 
     def F(c):
         total = torch.zeros(T, dtype=torch.float64)

@@ -68,7 +68,8 @@ class Mesh:
     @cached_property
     def centroids(self) -> torch.Tensor:
         """(T, 3)"""
-        return self.corners.mean(dim=1)
+        v, t = self.vertices, self.triangles
+        return (v[t[:, 0]] + v[t[:, 1]] + v[t[:, 2]]) / 3.0  # mean(dim=1) over (T, 3, 3) is several times slower
 
     @cached_property
     def _cross(self) -> torch.Tensor:
@@ -85,6 +86,21 @@ class Mesh:
         """(T, 3) unit normals."""
         x = self._cross
         return x / x.norm(dim=1, keepdim=True)
+
+    @cached_property
+    def plane_ids(self) -> torch.Tensor:
+        """(T,) int64: the elements of one planar surface share an id; an element of a curved
+        surface has one of its own. (Elements with different ids may still be coplanar.)
+        Split meshes inherit their parent's ids, children lying in their parent's plane."""
+        normals, T = self.normals, self.num_elements
+        offsets = (normals * self.centroids).sum(1, keepdim=True)
+        planes = torch.cat([normals, offsets / max(float(self.vertices.abs().max()), 1e-30)], dim=1)  # (T, 4)
+        S = int(self.surface.max()) + 1 if T else 0
+        index = self.surface[:, None].expand(-1, 4)
+        high = torch.full((S, 4), -torch.inf, dtype=planes.dtype).scatter_reduce(0, index, planes, "amax")
+        low = torch.full((S, 4), torch.inf, dtype=planes.dtype).scatter_reduce(0, index, planes, "amin")
+        planar = ((high - low) < 1e-6).all(dim=1)  # (S,)
+        return torch.where(planar[self.surface], self.surface, S + torch.arange(T))
 
     def bounding_box(self) -> tuple[torch.Tensor, torch.Tensor]:
         return self.vertices.min(dim=0).values, self.vertices.max(dim=0).values

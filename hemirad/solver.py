@@ -118,7 +118,7 @@ class ProgressiveSolver:
         self.areas = mesh.areas
         self.state = SolverState(radiosity=emission.clone(), unshot=emission.clone())
         self.emitted_power = (emission * self.areas[:, None]).sum(0)  # (3,)
-        self.form_factors = HemicubeFormFactors(mesh.vertices, mesh.triangles, resolution, cull)
+        self.form_factors = HemicubeFormFactors(mesh, resolution, cull)
         self.refiner = refiner
         self.update_seconds = self.gradient_seconds = self.refine_seconds = 0.0
 
@@ -148,7 +148,8 @@ class ProgressiveSolver:
         options = self.refiner.options
         F, J = form_factor_jacobian(view, ff.normals, ff.centroids,
                                     interior=options.interior or wanted == "interior",
-                                    shadow_edges=options.shadow_edges and wanted == "full", wanted=candidates)
+                                    shadow_edges=options.shadow_edges and wanted == "full", wanted=candidates,
+                                    plane_ids=self.mesh.plane_ids)
         self.gradient_seconds += time.perf_counter() - start
         return F, J, eye
 
@@ -163,7 +164,7 @@ class ProgressiveSolver:
         self.reflectance, self.emission = self.reflectance[parent], self.emission[parent]
         self.state.radiosity, self.state.unshot = self.state.radiosity[parent], self.state.unshot[parent]
         self.areas = self.mesh.areas
-        self.form_factors.set_geometry(self.mesh.vertices, self.mesh.triangles)
+        self.form_factors.set_geometry(self.mesh)
         return int(torch.nonzero(parent == shooter)[0]), self.mesh.level != level[parent]
 
     def shoot(self) -> int | None:
@@ -268,7 +269,7 @@ class ProgressiveSolver:
         self.emitted_power = state["emitted_power"].to(torch.float64)
         if self.refiner is not None:
             self.refiner.load_state_dict(state["refiner"])
-        self.form_factors.set_geometry(mesh.vertices, mesh.triangles)
+        self.form_factors.set_geometry(mesh)
         t = state["timings"]
         self.form_factors.hemicube.raster_seconds = float(t["raster"])
         self.form_factors.hemicube.readback_seconds = float(t["readback"])

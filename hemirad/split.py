@@ -40,12 +40,14 @@ def midpoint_lookup(mesh: Mesh):
         ``edge_parents`` is that pair, or -1 where the edge has never been split.
     """
     num_vertices = len(mesh.vertices)
-    parents = mesh.edge_parents
-    is_mid = parents[:, 0] >= 0
-    mid_index = torch.nonzero(is_mid).reshape(-1)
-    keys = _edge_keys(parents[mid_index, 0], parents[mid_index, 1], num_vertices)
-    keys, order = torch.sort(keys)
-    mid_index = mid_index[order]
+    cached = mesh.__dict__.get("_midpoint_index")  # meshes are immutable: sort once per mesh
+    if cached is None:
+        parents = mesh.edge_parents
+        mid_index = torch.nonzero(parents[:, 0] >= 0).reshape(-1)
+        keys = _edge_keys(parents[mid_index, 0], parents[mid_index, 1], num_vertices)
+        keys, order = torch.sort(keys)
+        cached = mesh.__dict__["_midpoint_index"] = (keys, mid_index[order])
+    keys, mid_index = cached
 
     def find(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         query = _edge_keys(a, b, num_vertices)
@@ -167,6 +169,8 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
         level=level,
         edge_parents=torch.cat([mesh.edge_parents, new_parents]),
     )
+    if "plane_ids" in mesh.__dict__:  # children lie in their parent's plane
+        out.__dict__["plane_ids"] = mesh.plane_ids[parent]
     return out, parent
 
 

@@ -7,7 +7,7 @@ import torch
 
 from hemirad.analytic import point_to_polygon
 from hemirad.formfactor import HemicubeFormFactors
-from hemirad.gradient import ReceiverPatches, ShotView, form_factor_jacobian, interior_form_factors
+from hemirad.gradient import ReceiverPatches, ShotView, form_factor_jacobian, interior_form_factors, occlusion_pairs
 from hemirad.mesh import Mesh
 
 Z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
@@ -35,7 +35,7 @@ def shot(point, polygons, resolution=256):
         ranges.append(slice(len(triangles), len(triangles) + 2))
         triangles += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
     mesh = Mesh(np.concatenate(vertices), triangles, range(len(triangles)), [0] * len(triangles))
-    ff = HemicubeFormFactors(mesh.vertices, mesh.triangles, resolution)
+    ff = HemicubeFormFactors(mesh, resolution)
     try:
         element, front, eye, frame = ff.render(0)
     finally:
@@ -129,3 +129,53 @@ def test_gradient_of_some_elements_is_their_rows_of_the_full_gradient():
     assert J_full[wanted].abs().sum() > 0 and J_full[~wanted].abs().sum() > 0
     torch.testing.assert_close(J[wanted], J_full[wanted], rtol=1e-12, atol=1e-15)
     assert not J[~wanted].any()
+
+
+def test_plane_ids_change_no_gradient_and_mark_planar_surfaces():
+    import hemirad
+    from hemirad.meshing import build_mesh
+    from hemirad.split import split_triangles
+
+    scene = hemirad.load_scene("floating")
+    mesh = build_mesh(scene)
+    ids = mesh.plane_ids
+    # every bundled surface is planar: one id per surface
+    assert torch.equal(ids, mesh.surface)
+    selected = torch.zeros(mesh.num_elements, dtype=torch.bool)
+    selected[::5] = True
+    split, parent = split_triangles(mesh, selected, "pattern2")
+    assert torch.equal(split.plane_ids, ids[parent])  # inherited
+    fresh = Mesh(split.vertices, split.triangles, split.surface, split.material)
+    assert torch.equal(fresh.plane_ids, split.plane_ids)  # and what computing them afresh gives
+
+    ff = HemicubeFormFactors(split, 64)
+    try:
+        lamp = int(torch.nonzero(scene.emission_table()[split.material].sum(1) > 0)[0])
+        element, front, eye, frame = ff.render(lamp)
+    finally:
+        ff.close()
+    view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
+    F, J = form_factor_jacobian(view, ff.normals, ff.centroids)
+    F_ids, J_ids = form_factor_jacobian(view, ff.normals, ff.centroids, plane_ids=split.plane_ids)
+    assert torch.equal(F, F_ids) and torch.equal(J, J_ids)
+    assert len(occlusion_pairs(view, ff.normals, ff.centroids).far_element) > 0  # the board's shadow edge
+
+
+def test_a_curved_surface_gives_each_element_its_own_plane_id():
+    # a tent: two faces of one surface meeting at a ridge
+    vertices = [[0, 0, 0], [1, 0, 0], [1, 1, 1], [0, 1, 1], [0, 2, 0], [1, 2, 0]]
+    triangles = [[0, 1, 2], [0, 2, 3], [3, 2, 5], [3, 5, 4]]
+    mesh = Mesh(vertices, triangles, [0, 0, 0, 0], [0, 0, 0, 0])
+    assert len(set(mesh.plane_ids.tolist())) == 4
+
+
+def test_pairs_touching_some_pixels_are_those_a_full_scan_finds():
+    from hemirad.gradient import neighbour_pairs, pairs_touching
+
+    R = 16
+    a, b, _ = neighbour_pairs(R)
+    pixels = torch.tensor([0, 5, R - 1, R, R * R - 1, R * R, R * R + R // 2 * R - 1, 3 * R * R - 1])
+    marked = torch.zeros(3 * R * R, dtype=torch.bool)
+    marked[pixels] = True
+    expected = (marked[a] | marked[b]).nonzero().reshape(-1)
+    assert torch.equal(pairs_touching(pixels, R), expected)

@@ -25,8 +25,8 @@ def refined_mesh(name):
 @pytest.mark.parametrize("name", ["cornell_box", "floating", "office"])
 def test_culled_render_gives_the_unculled_atlas_bit_for_bit(name):
     mesh = refined_mesh(name)
-    culled = HemicubeFormFactors(mesh.vertices, mesh.triangles, 64)
-    full = HemicubeFormFactors(mesh.vertices, mesh.triangles, 64, cull=False)
+    culled = HemicubeFormFactors(mesh, 64)
+    full = HemicubeFormFactors(mesh, 64, cull=False)
     try:
         shooters = torch.linspace(0, mesh.num_elements - 1, 25).long().tolist()
         for shooter in shooters:
