@@ -372,12 +372,12 @@ def draw_panel(draw, font, box, series, xkey, ykey, xlog, ylog, title, xlabel, y
 
 
 def write_figure(path: Path, rows: list[dict]) -> None:
-    """Per scene (one row of panels): relMSE and SSIM against elements, relMSE against seconds."""
+    """Per scene (one row of panels): relMSE and SSIM against elements, then against seconds."""
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     methods = list(dict.fromkeys(r["method"] for r in rows))
     style = {m: (COLOURS[i % len(COLOURS)], MARKERS[i % len(MARKERS)]) for i, m in enumerate(methods)}
-    panel_w, panel_h, legend_h = 440, 320, 26 * math.ceil(len(methods) / 3) + 10
-    image = Image.new("RGB", (3 * panel_w, len(scenes) * panel_h + legend_h), "white")
+    panel_w, panel_h, legend_h = 400, 320, 26 * math.ceil(len(methods) / 4) + 10
+    image = Image.new("RGB", (4 * panel_w, len(scenes) * panel_h + legend_h), "white")
     draw = ImageDraw.Draw(image)
     try:
         font = ImageFont.load_default(size=13)
@@ -385,7 +385,8 @@ def write_figure(path: Path, rows: list[dict]) -> None:
         font = ImageFont.load_default()
     panels = (("elements", "relative_mse", True, True, "relative MSE vs elements", "elements", "relMSE"),
               ("elements", "ssim", True, False, "SSIM vs elements", "elements", "SSIM"),
-              ("seconds", "relative_mse", True, True, "relative MSE vs seconds", "seconds", "relMSE"))
+              ("seconds", "relative_mse", True, True, "relative MSE vs seconds", "seconds", "relMSE"),
+              ("seconds", "ssim", True, False, "SSIM vs seconds", "seconds", "SSIM"))
     for i, name in enumerate(scenes):
         series = [(m, *style[m], [r for r in rows if r["scene"] == name and r["method"] == m]) for m in methods]
         series = [s for s in series if s[3]]
@@ -395,7 +396,7 @@ def write_figure(path: Path, rows: list[dict]) -> None:
     top = len(scenes) * panel_h + 8
     for k, m in enumerate(methods):
         colour, marker = style[m]
-        x, y = 20 + (k % 3) * panel_w, top + 26 * (k // 3) + 8
+        x, y = 20 + (k % 4) * panel_w, top + 26 * (k // 4) + 8
         draw.line((x, y, x + 30, y), fill=colour, width=2)
         _marker(draw, x + 15, y, marker, colour)
         draw.text((x + 40, y), m, fill=(0, 0, 0), font=font, anchor="lm")

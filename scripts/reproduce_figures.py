@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
 from PIL import Image, ImageDraw
 
 import hemirad
@@ -177,7 +177,7 @@ def main(argv=None) -> int:
         args.max_depth = min(args.max_depth, 2)
     grid_count = 16 if args.quick else 40
     ARGS = args
-    MACHINE = (f"{platform.machine()}, {torch.get_num_threads()} torch threads, "
+    MACHINE = (f"{platform.machine()}, {os.cpu_count()} cores, torch on one thread during solves, "
                f"{GLContext.renderer_name()}")
     args.out.mkdir(parents=True, exist_ok=True)
 
