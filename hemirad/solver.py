@@ -7,7 +7,6 @@ receiver j the radiosity  rho_j dB_s F_sj A_s / A_j  (DESIGN §1).
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -20,6 +19,7 @@ from .gl import GLContext
 from .gradient import ShotView, form_factor_jacobian
 from .mesh import Mesh
 from .refine import Refiner
+from .runtime import keep_freed_memory, torch_threads
 
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
@@ -49,23 +49,6 @@ def ambient_term(unshot: torch.Tensor, reflectance: torch.Tensor, areas: torch.T
     mean_reflectance = (reflectance * areas[:, None]).sum(0) / total_area
     mean_unshot = (unshot * areas[:, None]).sum(0) / total_area
     return mean_unshot / (1.0 - mean_reflectance)
-
-
-@contextmanager
-def torch_threads(count: int):
-    """Run the block with torch's intra-op pool at ``count`` threads, then restore it.
-
-    With a software renderer, llvmpipe already runs a thread per core during every
-    hemicube; a second torch thread on a 2-core machine only fights it for the cores and
-    spins between the many small per-shot operations. Measured on 2 cores: the
-    Fig. 6(c)-class benchmark took 1.6 times as long with torch on 2 threads as on 1.
-    """
-    before = torch.get_num_threads()
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 @dataclass
@@ -213,6 +196,7 @@ class ProgressiveSolver:
     def run(self, max_shots: int, unshot_fraction: float,
             progress: Callable[[ShotReport], None] | None = None) -> SolverState:
         start = time.perf_counter()
+        keep_freed_memory()
         with torch_threads(1 if GLContext.is_software() else torch.get_num_threads()):
             while self.state.shots < max_shots and self.unshot_fraction > unshot_fraction:
                 shooter = self.shoot()
