@@ -123,14 +123,15 @@ class ShotView:
         """Wrap an item atlas with what reconstructs its hit points.
 
         Args:
-            element, front, weight: (3R, R) from ``formfactor.decode_items`` / ``delta_form_factors``.
+            element, front: (3R, R) or flattened (P,), from ``formfactor.decode_items`` (or
+                relabelled); weight: (3R, R) ``delta_form_factors``.
             eye: (3,) and frame: (3, 3) as given to ``Hemicube.render``.
             normals, points: (T, 3) every element's unit normal and a point on its plane.
         """
         eye = torch.as_tensor(eye, dtype=torch.float64)
         return ShotView(eye, torch.as_tensor(frame, dtype=torch.float64), element.reshape(-1),
                         front.reshape(-1), weight.reshape(-1), normals, ((points - eye) * normals).sum(1),
-                        element.shape[1])
+                        weight.shape[-1])
 
     def hits(self, pixels: torch.Tensor) -> torch.Tensor:
         """(3, N) the world points the given pixels (N,) see, components first.

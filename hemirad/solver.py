@@ -19,6 +19,7 @@ from .gl import GLContext
 from .gradient import ShotView, form_factor_jacobian
 from .mesh import Mesh
 from .refine import Refiner
+from .relabel import relabel_atlas, split_pixels_of
 from .runtime import keep_freed_memory, torch_threads
 
 
@@ -89,12 +90,15 @@ class ProgressiveSolver:
         resolution: hemicube resolution R.
         refiner: splits receivers during shots (DESIGN §3); None for a fixed mesh.
         cull: per-face frustum culling in the hemicube (the same numbers, drawn faster).
+        relabel: between the passes of a refining shot, carry the hemicube's item atlas over
+            to the children (``relabel.py``) instead of rendering again; the shot is still
+            committed with a real render of the final mesh.
     Attributes:
         mesh, reflectance, emission, areas: current, as refinement changes them.
     """
 
     def __init__(self, mesh: Mesh, reflectance: torch.Tensor, emission: torch.Tensor, resolution: int,
-                 refiner: Refiner | None = None, cull: bool = True):
+                 refiner: Refiner | None = None, cull: bool = True, relabel: bool = True):
         self.mesh = mesh
         self.reflectance = reflectance
         self.emission = emission
@@ -103,6 +107,7 @@ class ProgressiveSolver:
         self.emitted_power = (emission * self.areas[:, None]).sum(0)  # (3,)
         self.form_factors = HemicubeFormFactors(mesh, resolution, cull)
         self.refiner = refiner
+        self.relabel = relabel
         self.update_seconds = self.gradient_seconds = self.refine_seconds = 0.0
 
     def close(self) -> None:
@@ -113,19 +118,26 @@ class ProgressiveSolver:
         unshot_power = (self.state.unshot * self.areas[:, None]).sum()
         return float(unshot_power / self.emitted_power.sum())
 
-    def _form_factors(self, shooter: int, candidates: torch.Tensor | None
-                      ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    def _form_factors(self, shooter: int, candidates: torch.Tensor | None, seen: tuple | None = None,
+                      gradient: bool = True) -> tuple[torch.Tensor, torch.Tensor | None, tuple, "ShotView | None"]:
         """F_sj, dF_sj/dc when the refiner reads it (else None; zero outside ``candidates``),
-        and the eye."""
+        what the hemicube saw (element, front, eye, frame), and the ShotView when one was made.
+
+        Args:
+            seen: what a relabelled atlas says the hemicube sees, instead of rendering.
+            gradient: False for the form factors alone.
+        """
         ff = self.form_factors
-        element, front, eye, frame = ff.render(shooter)
-        eye = torch.from_numpy(eye)
-        wanted = self.refiner.jacobian if self.refiner is not None else None
+        if seen is None:
+            element, front, eye, frame = ff.render(shooter)
+            seen = (element.reshape(-1), front.reshape(-1), torch.from_numpy(eye), frame)
+        element, front, eye, frame = seen
+        wanted = self.refiner.jacobian if self.refiner is not None and gradient else None
         if wanted is None:
             start = time.perf_counter()
-            F = element_form_factors(element, front, ff.weights, self.mesh.num_elements)
+            F = element_form_factors(element, front, ff.weights.reshape(-1), self.mesh.num_elements)
             ff.seconds += time.perf_counter() - start
-            return F, None, eye
+            return F, None, seen, None
         start = time.perf_counter()
         view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
         options = self.refiner.options
@@ -134,13 +146,14 @@ class ProgressiveSolver:
                                     shadow_edges=options.shadow_edges and wanted == "full", wanted=candidates,
                                     plane_ids=self.mesh.plane_ids)
         self.gradient_seconds += time.perf_counter() - start
-        return F, J, eye
+        return F, J, seen, view
 
-    def _split(self, selected: torch.Tensor, shooter: int) -> tuple[int, torch.Tensor]:
+    def _split(self, selected: torch.Tensor, shooter: int) -> tuple[int, torch.Tensor, torch.Tensor]:
         """Split the selected elements; children inherit B and dB.
 
         Returns:
-            the shooter's new index, and (T',) bool marking the new elements.
+            the shooter's new index, (T',) bool marking the new elements, and (T',) the old
+            element each new one lies in.
         """
         level = self.mesh.level
         self.mesh, parent = self.refiner.split(self.mesh, selected)
@@ -148,7 +161,7 @@ class ProgressiveSolver:
         self.state.radiosity, self.state.unshot = self.state.radiosity[parent], self.state.unshot[parent]
         self.areas = self.mesh.areas
         self.form_factors.set_geometry(self.mesh)
-        return int(torch.nonzero(parent == shooter)[0]), self.mesh.level != level[parent]
+        return int(torch.nonzero(parent == shooter)[0]), self.mesh.level != level[parent], parent
 
     def shoot(self) -> int | None:
         """One shot from the element with the largest unshot power; None when nothing is left.
@@ -168,21 +181,32 @@ class ProgressiveSolver:
         if float(shot_power.sum()) <= 0.0:
             return None
         candidates = None if self.refiner is None else self.refiner.splittable(self.mesh, shooter)
+        relabelled = None  # what the next pass sees, when carried over instead of rendered
         while True:
-            F, J, eye = self._form_factors(shooter, candidates)
+            F, J, seen, view = self._form_factors(shooter, candidates, relabelled)
             start = time.perf_counter()
-            delta = received_radiosity(F, shot_power, self.reflectance, self.areas)
             if self.refiner is None:
                 break
-            ctx = ShotContext(self.mesh, shooter, eye, self.form_factors.normals[shooter], F, delta,
+            delta = received_radiosity(F, shot_power, self.reflectance, self.areas)
+            ctx = ShotContext(self.mesh, shooter, seen[2], self.form_factors.normals[shooter], F, delta,
                               luminance(self.reflectance * shot_power) / self.areas, J, candidates)
             selected = self.refiner.select(ctx)
             if not bool(selected.any()):
                 self.refine_seconds += time.perf_counter() - start
+                if relabelled is not None:  # commit what a real render of the final mesh sees
+                    F = self._form_factors(shooter, None, gradient=False)[0]
                 break
-            shooter, new = self._split(selected, shooter)
+            old_shooter = shooter
+            shooter, new, parent = self._split(selected, shooter)
             candidates = new & self.refiner.splittable(self.mesh, shooter)
+            relabelled = None
+            if self.relabel and view is not None and bool((parent == old_shooter).sum() == 1):
+                pixels = split_pixels_of(seen[0], parent)
+                element = relabel_atlas(seen[0], view.hits(pixels), pixels, parent, self.mesh.corners,
+                                        self.mesh.normals)
+                relabelled = (element, *seen[1:])
             self.refine_seconds += time.perf_counter() - start
+        delta = received_radiosity(F, shot_power, self.reflectance, self.areas)
         start = time.perf_counter()
         state.radiosity += delta
         state.unshot += delta

@@ -1,0 +1,81 @@
+"""Carry a hemicube's item atlas across a split instead of rendering it again.
+
+Splitting changes no geometry: the children of an element tile its triangle exactly, so a
+pixel that saw the parent sees one of its descendants, the one whose triangle holds the
+pixel's hit point. Relabelling the parents' pixels by that test gives the atlas a new
+render would give, except for pixel centres within rounding of a new internal edge, where
+GL's tie rule may pick the other child (a few pixels in a hundred thousand; see the tests).
+The solver uses it between the passes of a refining shot and renders for real before the
+shot is committed.
+"""
+from __future__ import annotations
+
+import torch
+
+
+def descendants(parent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Map old elements to the new ones that lie in them.
+
+    Args:
+        parent: (T',) for every new element the old one it lies in (``Refiner.split``);
+            every old element has at least one.
+    Returns:
+        kept (T,): the new index of each unsplit old element (junk for split ones);
+        ordered (K,): the new elements that lie in split old ones, grouped by parent;
+        start, count (T,): each old element's run in ``ordered`` (count 1: not split).
+    """
+    count = torch.bincount(parent)
+    kept = torch.zeros(len(count), dtype=torch.int64).scatter_(0, parent, torch.arange(len(parent)))
+    in_split = (count[parent] > 1).nonzero().reshape(-1)  # few: sort only these
+    ordered = in_split[torch.argsort(parent[in_split], stable=True)]
+    split_count = torch.where(count > 1, count, 0)
+    return kept, ordered, torch.cumsum(split_count, 0) - split_count, count
+
+
+def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch.Tensor, parent: torch.Tensor,
+                  corners: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """The element each pixel sees after a split, from what it saw before.
+
+    Args:
+        element: (P,) old element per pixel, -1 for none.
+        hits: (3, N) world points seen by ``split_pixels``, the (N,) pixels whose old element
+            was split (``split_pixels_of``).
+        parent: (T',) old element of every new one.
+        corners: (T', 3, 3) and normals: (T', 3) of the new elements.
+    Returns:
+        (P,) new element per pixel, -1 for none.
+    """
+    kept, ordered, start, count = descendants(parent)
+    out = torch.where(element >= 0, kept[element.clamp(min=0)], element)
+    if len(split_pixels) == 0:
+        return out
+    # Every (pixel, descendant of its old element) pair, then the descendant that holds the
+    # hit point best: the largest smallest signed distance to its three edges (inside: >= 0).
+    old_of_pixel = element[split_pixels]
+    n_candidates = count[old_of_pixel]
+    pixel = torch.repeat_interleave(torch.arange(len(split_pixels)), n_candidates)
+    first = torch.cumsum(n_candidates, 0) - n_candidates
+    rank = torch.arange(len(pixel)) - first[pixel]
+    candidate = ordered[start[old_of_pixel][pixel] + rank]
+    y = hits[:, pixel].T  # (M, 3)
+    a, b, c = corners[candidate].unbind(dim=1)
+    n = normals[candidate]
+
+    def inside(p, q):  # signed distance of y from the edge p -> q, positive on the left
+        edge = q - p
+        return (torch.linalg.cross(edge, y - p) * n).sum(1) / edge.norm(dim=1)
+
+    margin = torch.minimum(torch.minimum(inside(a, b), inside(b, c)), inside(c, a))
+    best = torch.full((len(split_pixels),), -torch.inf, dtype=margin.dtype).scatter_reduce(0, pixel, margin, "amax")
+    is_best = margin == best[pixel]
+    chosen = torch.full((len(split_pixels),), len(parent), dtype=torch.int64)
+    chosen = chosen.scatter_reduce(0, pixel[is_best], candidate[is_best], "amin")  # ties: the lower index
+    out[split_pixels] = chosen
+    return out
+
+
+def split_pixels_of(element: torch.Tensor, parent: torch.Tensor) -> torch.Tensor:
+    """(N,) the pixels whose element was split (it has more than one descendant)."""
+    count = torch.bincount(parent)
+    seen = element >= 0
+    return (seen & (count[element.clamp(min=0)] > 1)).nonzero().reshape(-1)

@@ -1,0 +1,71 @@
+"""Item atlases carried across splits: what a new render would see, but for edge ties."""
+import torch
+
+import hemirad
+from hemirad.formfactor import HemicubeFormFactors
+from hemirad.gradient import ShotView
+from hemirad.meshing import build_mesh
+from hemirad.refine import Refiner
+from hemirad.relabel import descendants, relabel_atlas, split_pixels_of
+from hemirad.solver import ProgressiveSolver
+
+
+def test_descendants_group_new_elements_by_parent():
+    parent = torch.tensor([0, 2, 1, 1, 1, 3, 3, 3, 3])
+    kept, ordered, start, count = descendants(parent)
+    assert count.tolist() == [1, 3, 1, 4]
+    assert kept[0] == 0 and kept[2] == 1
+    assert ordered[start[1]:start[1] + 3].tolist() == [2, 3, 4]
+    assert ordered[start[3]:start[3] + 4].tolist() == [5, 6, 7, 8]
+
+
+def test_relabelled_atlas_is_the_new_render_but_for_a_few_edge_pixels():
+    scene = hemirad.load_scene("floating")
+    scene.refine.pattern = "pattern2"
+    mesh = build_mesh(scene)
+    emission = scene.emission_table()[mesh.material]
+    lamp = int(torch.nonzero(emission.sum(1) > 0)[0])
+    ff = HemicubeFormFactors(mesh, 128)
+    try:
+        element, front, eye, frame = ff.render(lamp)
+        view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
+        seen = torch.bincount(element[front].reshape(-1), minlength=mesh.num_elements) > 0
+        selected = seen & (torch.arange(mesh.num_elements) % 3 == 0)  # a third of what the lamp sees
+        selected[lamp] = False
+        new_mesh, parent = Refiner(scene.refine, emission).split(mesh, selected)  # with 2:1 grading
+        assert int((parent == lamp).sum()) == 1
+        pixels = split_pixels_of(view.element, parent)
+        assert len(pixels) > 10000
+        relabelled = relabel_atlas(view.element, view.hits(pixels), pixels, parent, new_mesh.corners,
+                                   new_mesh.normals)
+        ff.set_geometry(new_mesh)
+        rendered, _, _, _ = ff.render(int(torch.nonzero(parent == lamp)[0]))
+    finally:
+        ff.close()
+    rendered = rendered.reshape(-1)
+    differ = relabelled != rendered
+    assert int(differ.sum()) <= 1e-3 * len(pixels), int(differ.sum())
+    # where they differ, both are descendants of the same old element (a tie on a new edge)
+    assert torch.equal(parent[relabelled[differ]], parent[rendered[differ]])
+
+
+def test_a_solve_with_relabelled_passes_matches_one_that_renders_every_pass():
+    scene = hemirad.load_scene("floating_coarse")
+    scene.refine.pattern = "pattern2"
+    results = {}
+    for relabel in (True, False):
+        mesh = build_mesh(scene)
+        emission = scene.emission_table()[mesh.material]
+        solver = ProgressiveSolver(mesh, scene.reflectance_table()[mesh.material], emission, 64,
+                                   Refiner(scene.refine, emission), relabel=relabel)
+        try:
+            solver.run(12, 0.0)
+        finally:
+            solver.close()
+        power = (solver.state.radiosity * solver.mesh.areas[:, None]).sum(0)
+        results[relabel] = (solver.mesh.num_elements, power, solver.state.absorbed + solver.state.escaped)
+    (n1, p1, out1), (n0, p0, out0) = results[True], results[False]
+    assert n1 > build_mesh(scene).num_elements
+    assert abs(n1 - n0) <= 0.01 * n0
+    torch.testing.assert_close(p1, p0, rtol=1e-3, atol=0)
+    torch.testing.assert_close(out1, out0, rtol=1e-3, atol=0)
