@@ -152,6 +152,20 @@ class ShotView:
         k = self.element[pixels].clamp(min=0)
         return self.eye[:, None] + (self.distance[k] / (directions * self.normals_by_component[:, k]).sum(0)) * directions
 
+    def wanted_pixels(self, wanted: torch.Tensor | None, pixels: torch.Tensor | None = None,
+                      front: bool = False) -> torch.Tensor:
+        """(N,) the pixels that see an element marked in ``wanted`` (every element when None),
+        front-facing only with ``front``; only ``pixels`` are examined when given (the rest
+        are known to see none of the wanted elements)."""
+        element = self.element if pixels is None else self.element[pixels]
+        mask = self.front if front else element >= 0
+        if pixels is not None:
+            mask = mask[pixels] if front else mask
+        if wanted is not None:
+            mask = mask & wanted[element.clamp(min=0)]
+        found = mask.nonzero().reshape(-1)
+        return found if pixels is None else pixels[found]
+
     @cached_property
     def normals_by_component(self) -> torch.Tensor:
         """(3, T) the element normals, components first (contiguous)."""
@@ -189,11 +203,11 @@ class ReceiverPatches:
     scale: torch.Tensor
 
     @staticmethod
-    def from_view(view: ShotView, wanted: torch.Tensor | None = None) -> "ReceiverPatches":
+    def from_view(view: ShotView, wanted: torch.Tensor | None = None,
+                  pixels: torch.Tensor | None = None) -> "ReceiverPatches":
         """The patches of the front-facing pixels, or only of those that see an element marked
-        in ``wanted`` (T,) bool."""
-        mask = view.front if wanted is None else view.front & wanted[view.element.clamp(min=0)]
-        pixels = mask.nonzero().reshape(-1)
+        in ``wanted`` (T,) bool, looked for among ``pixels`` (N,) when given."""
+        pixels = view.wanted_pixels(wanted, pixels, front=True)
         element = view.element[pixels]
         offset = view.hits(pixels) - view.eye[:, None]
         normal = view.normals_by_component[:, element]
@@ -248,7 +262,8 @@ class OcclusionPairs:
 
 
 def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
-                    wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None) -> OcclusionPairs:
+                    wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None,
+                    pixels: torch.Tensor | None = None) -> OcclusionPairs:
     """Find the 4-neighbour pixel pairs within one face that straddle an occluding edge.
 
     A pair qualifies when the pixels see different elements, the farther one F is seen from
@@ -263,11 +278,12 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
         wanted: (T,) bool, optional: only pairs whose farther element is marked.
         plane_ids: (T,) int64, optional (``Mesh.plane_ids``): pairs on one plane are
             dropped before the plane tests, which would reject them anyway.
+        pixels: (N,) optional: the only pixels that may see a wanted element.
     """
     R = view.resolution
     a, b, step = neighbour_pairs(R)
     if wanted is not None:  # first the pairs that touch a wanted element's pixel
-        wanted_pixel = ((view.element >= 0) & wanted[view.element.clamp(min=0)]).nonzero().reshape(-1)
+        wanted_pixel = view.wanted_pixels(wanted, pixels)
         if len(wanted_pixel) < len(view.element) // 16:  # few: found from the pixels
             pair = pairs_touching(wanted_pixel, R)
         else:
@@ -342,27 +358,26 @@ def shadow_edge_form_factors(c: torch.Tensor, view: ShotView, pairs: OcclusionPa
     Returns:
         (T,)
     """
-    axes = face_axes(view.frame)[pairs.face]  # (K, 3, 3): forward, right, up
+    K = len(pairs.far_element)
+    axes = face_axes(view.frame)[pairs.face].repeat(2, 1, 1)  # (2K, 3, 3): forward, right, up
+    points = torch.cat([pairs.near_hit, pairs.far_hit])  # (2K, 3): X_N then X_F
     h = 2.0 / view.resolution
 
-    def image_point(X, eye):  # (K, 2) face-image coordinates of X seen from ``eye``
-        r = X - eye
-        depth = (r * axes[:, 0]).sum(1)
-        return torch.stack([(r * axes[:, 1]).sum(1), (r * axes[:, 2]).sum(1)], 1) / depth[:, None]
+    def image_points(eye):  # (2K, 2) face-image coordinates of X_N and X_F seen from ``eye``
+        depth_right_up = torch.einsum("kc,kac->ka", points - eye, axes)
+        return depth_right_up[:, 1:] / depth_right_up[:, :1]
 
-    def shift(X):
-        return image_point(X, c) - image_point(X, view.eye)
-
-    parallax = ((shift(pairs.near_hit) - shift(pairs.far_hit)) * pairs.axis).sum(1)
+    shift = image_points(c) - image_points(view.eye)  # the second term is constant
+    parallax = ((shift[:K] - shift[K:]) * pairs.axis).sum(1)
     term = -pairs.weight * parallax / h
     return torch.zeros(num_elements, dtype=term.dtype).index_add(0, pairs.far_element, term)
 
 
-def form_factor_jacobian(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
+def form_factor_gradient(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
                          interior: bool = True, shadow_edges: bool = True,
-                         wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None
-                         ) -> tuple[torch.Tensor, torch.Tensor]:
-    """F_sj and dF_sj/dc for every element, by forward-mode autograd.
+                         wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None,
+                         pixels: torch.Tensor | None = None) -> torch.Tensor:
+    """dF_sj/dc for every element, by forward-mode autograd: (T, 3).
 
     Args:
         view: one render; normals, points: (T, 3) element planes.
@@ -372,13 +387,11 @@ def form_factor_jacobian(view: ShotView, normals: torch.Tensor, points: torch.Te
             share of the image; J is zero in the other rows, and the same as without
             ``wanted`` in these.
         plane_ids: (T,) ``Mesh.plane_ids``, optional: speeds up finding shadow edges.
-    Returns:
-        F (T,) the hemicube form factors (every element), and J (T, 3) their gradient with
-        respect to the eye.
+        pixels: (N,) optional, with ``wanted``: the only pixels that may see a wanted element.
     """
     T = len(normals)
-    patches = ReceiverPatches.from_view(view, wanted)
-    pairs = occlusion_pairs(view, normals, points, wanted, plane_ids) if shadow_edges else None
+    patches = ReceiverPatches.from_view(view, wanted, pixels)
+    pairs = occlusion_pairs(view, normals, points, wanted, plane_ids, pixels) if shadow_edges else None
 
     def F(c):
         total = torch.zeros(T, dtype=torch.float64)
@@ -388,5 +401,14 @@ def form_factor_jacobian(view: ShotView, normals: torch.Tensor, points: torch.Te
             total = total + shadow_edge_form_factors(c, view, pairs, T)
         return total
 
-    J = jacfwd(F)(view.eye)
-    return element_form_factors(view.element, view.front, view.weight, T), J
+    return jacfwd(F)(view.eye)
+
+
+def form_factor_jacobian(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
+                         interior: bool = True, shadow_edges: bool = True,
+                         wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """F_sj (T,), the hemicube form factors of every element, and their gradient J (T, 3)
+    with respect to the eye (``form_factor_gradient``, same arguments)."""
+    F = element_form_factors(view.element, view.front, view.weight, len(normals))
+    return F, form_factor_gradient(view, normals, points, interior, shadow_edges, wanted, plane_ids)

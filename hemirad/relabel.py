@@ -79,3 +79,22 @@ def split_pixels_of(element: torch.Tensor, parent: torch.Tensor) -> torch.Tensor
     count = torch.bincount(parent)
     seen = element >= 0
     return (seen & (count[element.clamp(min=0)] > 1)).nonzero().reshape(-1)
+
+
+def relabel_form_factors(form_factors: torch.Tensor, parent: torch.Tensor, element: torch.Tensor,
+                         front: torch.Tensor, weight: torch.Tensor, split_pixels: torch.Tensor) -> torch.Tensor:
+    """F after a split from F before: unsplit elements keep theirs, the new ones sum their
+    pixels (all among ``split_pixels``). The same, bit for bit, as summing the whole
+    relabelled atlas (``formfactor.element_form_factors``): each element's pixels are summed
+    in the same order.
+
+    Args:
+        form_factors: (T,) before; parent: (T',); element: (P,) relabelled; front, weight: (P,).
+    Returns:
+        (T',)
+    """
+    unsplit = torch.bincount(parent)[parent] == 1
+    out = torch.where(unsplit, form_factors[parent], torch.zeros((), dtype=form_factors.dtype))
+    mask = front[split_pixels]
+    pixels = split_pixels[mask]
+    return out + torch.bincount(element[pixels], weights=weight[pixels], minlength=len(parent))

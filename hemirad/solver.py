@@ -16,10 +16,10 @@ from .criteria import ShotContext
 from .display import luminance
 from .formfactor import HemicubeFormFactors, element_form_factors
 from .gl import GLContext
-from .gradient import ShotView, form_factor_jacobian
+from .gradient import ShotView, form_factor_gradient
 from .mesh import Mesh
 from .refine import Refiner
-from .relabel import relabel_atlas, split_pixels_of
+from .relabel import relabel_atlas, relabel_form_factors, split_pixels_of
 from .runtime import keep_freed_memory, torch_threads
 
 
@@ -50,6 +50,34 @@ def ambient_term(unshot: torch.Tensor, reflectance: torch.Tensor, areas: torch.T
     mean_reflectance = (reflectance * areas[:, None]).sum(0) / total_area
     mean_unshot = (unshot * areas[:, None]).sum(0) / total_area
     return mean_unshot / (1.0 - mean_reflectance)
+
+
+@dataclass
+class Seen:
+    """What one pass's hemicube sees (P pixels, flattened), rendered or relabelled.
+
+    Attributes:
+        element: (P,) element per pixel, -1 for none; front: (P,) bool.
+        eye: (3,) and frame: (3, 3) of the hemicube.
+        form_factors: (T,) F_sj summed from these pixels.
+        changed: (N,) for a relabelled atlas, the pixels relabelled (the only ones that see
+            new elements); None for a render.
+    """
+
+    element: torch.Tensor
+    front: torch.Tensor
+    eye: torch.Tensor
+    frame: object
+    form_factors: torch.Tensor
+    changed: torch.Tensor | None = None
+
+    def relabelled(self, view: ShotView, parent: torch.Tensor, mesh: Mesh, weight: torch.Tensor) -> "Seen":
+        """What the same hemicube sees after a split (``relabel.py``): ``parent`` (T',) maps
+        the new ``mesh``'s elements to the old ones; ``view`` is this pass's ShotView."""
+        pixels = split_pixels_of(self.element, parent)
+        element = relabel_atlas(self.element, view.hits(pixels), pixels, parent, mesh.corners, mesh.normals)
+        form_factors = relabel_form_factors(self.form_factors, parent, element, self.front, weight, pixels)
+        return Seen(element, self.front, self.eye, self.frame, form_factors, pixels)
 
 
 @dataclass
@@ -118,10 +146,10 @@ class ProgressiveSolver:
         unshot_power = (self.state.unshot * self.areas[:, None]).sum()
         return float(unshot_power / self.emitted_power.sum())
 
-    def _form_factors(self, shooter: int, candidates: torch.Tensor | None, seen: tuple | None = None,
-                      gradient: bool = True) -> tuple[torch.Tensor, torch.Tensor | None, tuple, "ShotView | None"]:
-        """F_sj, dF_sj/dc when the refiner reads it (else None; zero outside ``candidates``),
-        what the hemicube saw (element, front, eye, frame), and the ShotView when one was made.
+    def _form_factors(self, shooter: int, candidates: torch.Tensor | None, seen: Seen | None = None,
+                      gradient: bool = True) -> tuple[torch.Tensor | None, "Seen", "ShotView | None"]:
+        """dF_sj/dc when the refiner reads it (else None; zero outside ``candidates``), what
+        the hemicube saw, with F_sj, and the ShotView when one was made.
 
         Args:
             seen: what a relabelled atlas says the hemicube sees, instead of rendering.
@@ -130,23 +158,23 @@ class ProgressiveSolver:
         ff = self.form_factors
         if seen is None:
             element, front, eye, frame = ff.render(shooter)
-            seen = (element.reshape(-1), front.reshape(-1), torch.from_numpy(eye), frame)
-        element, front, eye, frame = seen
-        wanted = self.refiner.jacobian if self.refiner is not None and gradient else None
-        if wanted is None:
+            element, front = element.reshape(-1), front.reshape(-1)
             start = time.perf_counter()
             F = element_form_factors(element, front, ff.weights.reshape(-1), self.mesh.num_elements)
             ff.seconds += time.perf_counter() - start
-            return F, None, seen, None
+            seen = Seen(element, front, torch.from_numpy(eye), frame, F)
+        wanted = self.refiner.jacobian if self.refiner is not None and gradient else None
+        if wanted is None:
+            return None, seen, None
         start = time.perf_counter()
-        view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
+        view = ShotView.from_render(seen.element, seen.front, ff.weights, seen.eye, seen.frame, ff.normals,
+                                    ff.centroids)
         options = self.refiner.options
-        F, J = form_factor_jacobian(view, ff.normals, ff.centroids,
-                                    interior=options.interior or wanted == "interior",
-                                    shadow_edges=options.shadow_edges and wanted == "full", wanted=candidates,
-                                    plane_ids=self.mesh.plane_ids)
+        J = form_factor_gradient(view, ff.normals, ff.centroids, interior=options.interior or wanted == "interior",
+                                 shadow_edges=options.shadow_edges and wanted == "full", wanted=candidates,
+                                 plane_ids=self.mesh.plane_ids, pixels=seen.changed)
         self.gradient_seconds += time.perf_counter() - start
-        return F, J, seen, view
+        return J, seen, view
 
     def _split(self, selected: torch.Tensor, shooter: int) -> tuple[int, torch.Tensor, torch.Tensor]:
         """Split the selected elements; children inherit B and dB.
@@ -183,29 +211,27 @@ class ProgressiveSolver:
         candidates = None if self.refiner is None else self.refiner.splittable(self.mesh, shooter)
         relabelled = None  # what the next pass sees, when carried over instead of rendered
         while True:
-            F, J, seen, view = self._form_factors(shooter, candidates, relabelled)
+            J, seen, view = self._form_factors(shooter, candidates, relabelled)
             start = time.perf_counter()
             if self.refiner is None:
                 break
-            delta = received_radiosity(F, shot_power, self.reflectance, self.areas)
-            ctx = ShotContext(self.mesh, shooter, seen[2], self.form_factors.normals[shooter], F, delta,
-                              luminance(self.reflectance * shot_power) / self.areas, J, candidates)
+            delta = received_radiosity(seen.form_factors, shot_power, self.reflectance, self.areas)
+            ctx = ShotContext(self.mesh, shooter, seen.eye, self.form_factors.normals[shooter], seen.form_factors,
+                              delta, luminance(self.reflectance * shot_power) / self.areas, J, candidates)
             selected = self.refiner.select(ctx)
             if not bool(selected.any()):
                 self.refine_seconds += time.perf_counter() - start
                 if relabelled is not None:  # commit what a real render of the final mesh sees
-                    F = self._form_factors(shooter, None, gradient=False)[0]
+                    seen = self._form_factors(shooter, None, gradient=False)[1]
                 break
             old_shooter = shooter
             shooter, new, parent = self._split(selected, shooter)
             candidates = new & self.refiner.splittable(self.mesh, shooter)
             relabelled = None
             if self.relabel and view is not None and bool((parent == old_shooter).sum() == 1):
-                pixels = split_pixels_of(seen[0], parent)
-                element = relabel_atlas(seen[0], view.hits(pixels), pixels, parent, self.mesh.corners,
-                                        self.mesh.normals)
-                relabelled = (element, *seen[1:])
+                relabelled = seen.relabelled(view, parent, self.mesh, self.form_factors.weights.reshape(-1))
             self.refine_seconds += time.perf_counter() - start
+        F = seen.form_factors
         delta = received_radiosity(F, shot_power, self.reflectance, self.areas)
         start = time.perf_counter()
         state.radiosity += delta

@@ -6,7 +6,8 @@ from hemirad.formfactor import HemicubeFormFactors
 from hemirad.gradient import ShotView
 from hemirad.meshing import build_mesh
 from hemirad.refine import Refiner
-from hemirad.relabel import descendants, relabel_atlas, split_pixels_of
+from hemirad.formfactor import element_form_factors
+from hemirad.relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
 from hemirad.solver import ProgressiveSolver
 
 
@@ -38,6 +39,11 @@ def test_relabelled_atlas_is_the_new_render_but_for_a_few_edge_pixels():
         assert len(pixels) > 10000
         relabelled = relabel_atlas(view.element, view.hits(pixels), pixels, parent, new_mesh.corners,
                                    new_mesh.normals)
+        # the form factors carried over are those of the relabelled atlas, bit for bit
+        weight = ff.weights.reshape(-1)
+        F_old = element_form_factors(view.element, view.front, weight, mesh.num_elements)
+        F_new = relabel_form_factors(F_old, parent, relabelled, view.front, weight, pixels)
+        assert torch.equal(F_new, element_form_factors(relabelled, view.front, weight, new_mesh.num_elements))
         ff.set_geometry(new_mesh)
         rendered, _, _, _ = ff.render(int(torch.nonzero(parent == lamp)[0]))
     finally:
