@@ -149,7 +149,7 @@ class ProgressiveSolver:
     def _form_factors(self, shooter: int, candidates: torch.Tensor | None, seen: Seen | None = None,
                       gradient: bool = True) -> tuple[torch.Tensor | None, "Seen", "ShotView | None"]:
         """dF_sj/dc when the refiner reads it (else None; zero outside ``candidates``), what
-        the hemicube saw, with F_sj, and the ShotView when one was made.
+        the hemicube saw, with F_sj, and its ShotView (None without a refiner).
 
         Args:
             seen: what a relabelled atlas says the hemicube sees, instead of rendering.
@@ -163,12 +163,14 @@ class ProgressiveSolver:
             F = element_form_factors(element, front, ff.weights.reshape(-1), self.mesh.num_elements)
             ff.seconds += time.perf_counter() - start
             seen = Seen(element, front, torch.from_numpy(eye), frame, F)
-        wanted = self.refiner.jacobian if self.refiner is not None and gradient else None
-        if wanted is None:
+        if self.refiner is None or not gradient:
             return None, seen, None
         start = time.perf_counter()
         view = ShotView.from_render(seen.element, seen.front, ff.weights, seen.eye, seen.frame, ff.normals,
                                     ff.centroids)
+        wanted = self.refiner.jacobian
+        if wanted is None:
+            return None, seen, view
         options = self.refiner.options
         J = form_factor_gradient(view, ff.normals, ff.centroids, interior=options.interior or wanted == "interior",
                                  shadow_edges=options.shadow_edges and wanted == "full", wanted=candidates,
@@ -200,7 +202,9 @@ class ProgressiveSolver:
         receiver, the next the children of those it split, and so on down the levels, as a
         recursive subdivision would. Unsplit receivers keep their pixels, so judging them
         again would only repeat the verdict (or follow the hemicube's aliasing at split
-        edges); gradients are computed for the judged receivers only.
+        edges); gradients are computed for the judged receivers only. Between passes what the
+        hemicube sees is carried over to the children (``relabel``) rather than rendered
+        again; the pass that is committed is always a real render.
         """
         state = self.state
         power = state.unshot * self.areas[:, None]  # (T, 3)
@@ -228,7 +232,7 @@ class ProgressiveSolver:
             shooter, new, parent = self._split(selected, shooter)
             candidates = new & self.refiner.splittable(self.mesh, shooter)
             relabelled = None
-            if self.relabel and view is not None and bool((parent == old_shooter).sum() == 1):
+            if self.relabel and bool((parent == old_shooter).sum() == 1):  # the eye has not moved
                 relabelled = seen.relabelled(view, parent, self.mesh, self.form_factors.weights.reshape(-1))
             self.refine_seconds += time.perf_counter() - start
         F = seen.form_factors
