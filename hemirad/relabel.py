@@ -3,8 +3,8 @@
 Splitting changes no geometry: the children of an element tile its triangle exactly, so a
 pixel that saw the parent sees one of its descendants, the one whose triangle holds the
 pixel's hit point. Relabelling the parents' pixels by that test gives the atlas a new
-render would give, except for pixel centres within rounding of a new internal edge, where
-GL's tie rule may pick the other child (a few pixels in a hundred thousand; see the tests).
+render would give, except where a pixel centre lies within rounding of a new internal edge
+and GL's tie rule picks the other child (no such pixel on the tested scenes).
 The solver uses it between the passes of a refining shot and renders for real before the
 shot is committed.
 """
