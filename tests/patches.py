@@ -1,9 +1,13 @@
-"""Small test geometries built from quads: each quad is its own surface."""
+"""Small test geometries built from quads (each quad its own surface), and a short refining
+solve of a bundled scene."""
 import numpy as np
 import torch
 
+import hemirad
 from hemirad.mesh import Mesh
-from hemirad.meshing import grid_quad
+from hemirad.meshing import build_mesh, grid_quad
+from hemirad.refine import Refiner
+from hemirad.solver import ProgressiveSolver
 
 
 def quad(origin, u, v):
@@ -29,3 +33,19 @@ def closed_box(size=1.0, element_size=1.0):
     faces = [quad(o, X, Y), quad(o, Z, X), quad(o, Y, Z),
              quad(s, -Y, -X), quad(s, -X, -Z), quad(s, -Z, -Y)]
     return quads_mesh(faces, [element_size] * 6)
+
+
+def refined_solve(scene_name: str, shots: int, resolution: int = 64, **solver_options):
+    """A pattern-2 refining solve of a bundled scene for ``shots`` shots; returns the
+    finished (closed) ProgressiveSolver, with ``solver_options`` (cull, relabel) passed on."""
+    scene = hemirad.load_scene(scene_name)
+    scene.refine.pattern = "pattern2"
+    mesh = build_mesh(scene)
+    emission = scene.emission_table()[mesh.material]
+    solver = ProgressiveSolver(mesh, scene.reflectance_table()[mesh.material], emission, resolution,
+                               Refiner(scene.refine, emission), **solver_options)
+    try:
+        solver.run(shots, 0.0)
+    finally:
+        solver.close()
+    return solver

@@ -7,9 +7,9 @@ import hemirad
 from hemirad.formfactor import HemicubeFormFactors
 from hemirad.hemicube import FACES, face_visibility
 from hemirad.meshing import build_mesh
-from hemirad.refine import Refiner
-from hemirad.solver import ProgressiveSolver
 from hemirad.split import split_triangles
+
+from patches import refined_solve
 
 
 def refined_mesh(name):
@@ -44,22 +44,10 @@ def test_culled_render_gives_the_unculled_atlas_bit_for_bit(name):
 
 
 def test_refined_solve_is_the_same_with_and_without_culling():
-    scene = hemirad.load_scene("floating_coarse")
-    scene.refine.pattern = "pattern2"
-    results = []
-    for cull in (True, False):
-        mesh = build_mesh(scene)
-        emission = scene.emission_table()[mesh.material]
-        solver = ProgressiveSolver(mesh, scene.reflectance_table()[mesh.material], emission, 64,
-                                   Refiner(scene.refine, emission), cull=cull)
-        try:
-            solver.run(15, 0.0)
-        finally:
-            solver.close()
-        results.append((solver.mesh.triangles, solver.state.radiosity))
-    assert len(results[0][0]) > build_mesh(scene).num_elements  # refinement did split
-    assert torch.equal(results[0][0], results[1][0])
-    assert torch.equal(results[0][1], results[1][1])
+    culled, full = (refined_solve("floating_coarse", 15, cull=cull) for cull in (True, False))
+    assert culled.mesh.num_elements > build_mesh(hemirad.load_scene("floating_coarse")).num_elements  # it split
+    assert torch.equal(culled.mesh.triangles, full.mesh.triangles)
+    assert torch.equal(culled.state.radiosity, full.state.radiosity)
 
 
 def _local(points):

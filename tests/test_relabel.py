@@ -2,13 +2,13 @@
 import torch
 
 import hemirad
-from hemirad.formfactor import HemicubeFormFactors
+from hemirad.formfactor import HemicubeFormFactors, element_form_factors
 from hemirad.gradient import ShotView
 from hemirad.meshing import build_mesh
 from hemirad.refine import Refiner
-from hemirad.formfactor import element_form_factors
 from hemirad.relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
-from hemirad.solver import ProgressiveSolver
+
+from patches import refined_solve
 
 
 def test_descendants_group_new_elements_by_parent():
@@ -56,22 +56,13 @@ def test_relabelled_atlas_is_the_new_render_but_for_a_few_edge_pixels():
 
 
 def test_a_solve_with_relabelled_passes_matches_one_that_renders_every_pass():
-    scene = hemirad.load_scene("floating_coarse")
-    scene.refine.pattern = "pattern2"
     results = {}
     for relabel in (True, False):
-        mesh = build_mesh(scene)
-        emission = scene.emission_table()[mesh.material]
-        solver = ProgressiveSolver(mesh, scene.reflectance_table()[mesh.material], emission, 64,
-                                   Refiner(scene.refine, emission), relabel=relabel)
-        try:
-            solver.run(12, 0.0)
-        finally:
-            solver.close()
+        solver = refined_solve("floating_coarse", 12, relabel=relabel)
         power = (solver.state.radiosity * solver.mesh.areas[:, None]).sum(0)
         results[relabel] = (solver.mesh.num_elements, power, solver.state.absorbed + solver.state.escaped)
     (n1, p1, out1), (n0, p0, out0) = results[True], results[False]
-    assert n1 > build_mesh(scene).num_elements
+    assert n1 > build_mesh(hemirad.load_scene("floating_coarse")).num_elements
     assert abs(n1 - n0) <= 0.01 * n0
     torch.testing.assert_close(p1, p0, rtol=1e-3, atol=0)
     torch.testing.assert_close(out1, out0, rtol=1e-3, atol=0)
