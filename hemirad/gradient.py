@@ -11,9 +11,10 @@ hemicube's F_sj and whose derivative is the first-order change of F_sj as c move
   farther receiver F, the coverage F gains or loses as the eye's parallax slides N's edge
   across it: F_F += -dF_bar ((delta(X_N) - delta(X_F)) . e) / h, zero in value at c0.
 
-Both are pure functions of c over tensors of one render; ``form_factor_jacobian`` takes
+Both are pure functions of c over tensors of one render; ``form_factor_gradient`` takes
 their Jacobian with forward-mode autograd (three tangents for N outputs: the paper's
-bottom-up mode), with no Python loop over elements or pixels.
+bottom-up mode), with no Python loop over elements or pixels, over the pixels of the
+elements asked for only (``form_factor_jacobian`` adds the form factors themselves).
 """
 from __future__ import annotations
 
