@@ -159,9 +159,10 @@ class ShotView:
         front-facing only with ``front``; only ``pixels`` are examined when given (the rest
         are known to see none of the wanted elements)."""
         element = self.element if pixels is None else self.element[pixels]
-        mask = self.front if front else element >= 0
-        if pixels is not None:
-            mask = mask[pixels] if front else mask
+        if front:
+            mask = self.front if pixels is None else self.front[pixels]
+        else:
+            mask = element >= 0
         if wanted is not None:
             mask = mask & wanted[element.clamp(min=0)]
         found = mask.nonzero().reshape(-1)
@@ -305,10 +306,8 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
     offset = (points * normals).sum(1)  # (T,)
     eye_side = torch.sign(normals @ view.eye - offset)  # (T,)
 
-    normals_by_component = normals.T.contiguous()
-
     def side(X, k):  # signed distance of X (3, K) from element k's plane, positive on the eye's side
-        return ((normals_by_component[:, k] * X).sum(0) - offset[k]) * eye_side[k]
+        return ((view.normals_by_component[:, k] * X).sum(0) - offset[k]) * eye_side[k]
 
     Xa, Xb = view.hits(a), view.hits(b)  # (3, K)
     da2 = ((Xa - view.eye[:, None]) ** 2).sum(0)

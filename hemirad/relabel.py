@@ -10,29 +10,50 @@ shot is committed.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 
-def descendants(parent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+@dataclass
+class Descent:
+    """Which new elements lie in which old ones after a split (``descendants``).
+
+    Attributes:
+        parent: (T',) the old element every new one lies in.
+        kept: (T,) the new index of each unsplit old element (junk for split ones).
+        ordered: (K,) the new elements that lie in split old ones, grouped by parent.
+        start, count: (T,) each old element's run in ``ordered``; count 1: not split.
+    """
+
+    parent: torch.Tensor
+    kept: torch.Tensor
+    ordered: torch.Tensor
+    start: torch.Tensor
+    count: torch.Tensor
+
+
+def descendants(parent: torch.Tensor) -> Descent:
     """Map old elements to the new ones that lie in them.
 
     Args:
         parent: (T',) for every new element the old one it lies in (``Refiner.split``);
             every old element has at least one.
-    Returns:
-        kept (T,): the new index of each unsplit old element (junk for split ones);
-        ordered (K,): the new elements that lie in split old ones, grouped by parent;
-        start, count (T,): each old element's run in ``ordered`` (count 1: not split).
     """
     count = torch.bincount(parent)
     kept = torch.zeros(len(count), dtype=torch.int64).scatter_(0, parent, torch.arange(len(parent)))
     in_split = (count[parent] > 1).nonzero().reshape(-1)  # few: sort only these
     ordered = in_split[torch.argsort(parent[in_split], stable=True)]
     split_count = torch.where(count > 1, count, 0)
-    return kept, ordered, torch.cumsum(split_count, 0) - split_count, count
+    return Descent(parent, kept, ordered, torch.cumsum(split_count, 0) - split_count, count)
 
 
-def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch.Tensor, parent: torch.Tensor,
+def split_pixels_of(element: torch.Tensor, descent: Descent) -> torch.Tensor:
+    """(N,) the pixels whose element was split (it has more than one descendant)."""
+    return ((element >= 0) & (descent.count[element.clamp(min=0)] > 1)).nonzero().reshape(-1)
+
+
+def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch.Tensor, descent: Descent,
                   corners: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
     """The element each pixel sees after a split, from what it saw before.
 
@@ -40,23 +61,22 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
         element: (P,) old element per pixel, -1 for none.
         hits: (3, N) world points seen by ``split_pixels``, the (N,) pixels whose old element
             was split (``split_pixels_of``).
-        parent: (T',) old element of every new one.
+        descent: the split's ``descendants``.
         corners: (T', 3, 3) and normals: (T', 3) of the new elements.
     Returns:
         (P,) new element per pixel, -1 for none.
     """
-    kept, ordered, start, count = descendants(parent)
-    out = torch.where(element >= 0, kept[element.clamp(min=0)], element)
+    out = torch.where(element >= 0, descent.kept[element.clamp(min=0)], element)
     if len(split_pixels) == 0:
         return out
     # Every (pixel, descendant of its old element) pair, then the descendant that holds the
     # hit point best: the largest smallest signed distance to its three edges (inside: >= 0).
     old_of_pixel = element[split_pixels]
-    n_candidates = count[old_of_pixel]
+    n_candidates = descent.count[old_of_pixel]
     pixel = torch.repeat_interleave(torch.arange(len(split_pixels)), n_candidates)
     first = torch.cumsum(n_candidates, 0) - n_candidates
     rank = torch.arange(len(pixel)) - first[pixel]
-    candidate = ordered[start[old_of_pixel][pixel] + rank]
+    candidate = descent.ordered[descent.start[old_of_pixel][pixel] + rank]
     y = hits[:, pixel].T  # (M, 3)
     a, b, c = corners[candidate].unbind(dim=1)
     n = normals[candidate]
@@ -68,20 +88,13 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
     margin = torch.minimum(torch.minimum(inside(a, b), inside(b, c)), inside(c, a))
     best = torch.full((len(split_pixels),), -torch.inf, dtype=margin.dtype).scatter_reduce(0, pixel, margin, "amax")
     is_best = margin == best[pixel]
-    chosen = torch.full((len(split_pixels),), len(parent), dtype=torch.int64)
+    chosen = torch.full((len(split_pixels),), len(descent.parent), dtype=torch.int64)
     chosen = chosen.scatter_reduce(0, pixel[is_best], candidate[is_best], "amin")  # ties: the lower index
     out[split_pixels] = chosen
     return out
 
 
-def split_pixels_of(element: torch.Tensor, parent: torch.Tensor) -> torch.Tensor:
-    """(N,) the pixels whose element was split (it has more than one descendant)."""
-    count = torch.bincount(parent)
-    seen = element >= 0
-    return (seen & (count[element.clamp(min=0)] > 1)).nonzero().reshape(-1)
-
-
-def relabel_form_factors(form_factors: torch.Tensor, parent: torch.Tensor, element: torch.Tensor,
+def relabel_form_factors(form_factors: torch.Tensor, descent: Descent, element: torch.Tensor,
                          front: torch.Tensor, weight: torch.Tensor, split_pixels: torch.Tensor) -> torch.Tensor:
     """F after a split from F before: unsplit elements keep theirs, the new ones sum their
     pixels (all among ``split_pixels``). The same, bit for bit, as summing the whole
@@ -89,12 +102,13 @@ def relabel_form_factors(form_factors: torch.Tensor, parent: torch.Tensor, eleme
     in the same order.
 
     Args:
-        form_factors: (T,) before; parent: (T',); element: (P,) relabelled; front, weight: (P,).
+        form_factors: (T,) before; descent: the split's ``descendants``; element: (P,)
+            relabelled; front, weight: (P,).
     Returns:
         (T',)
     """
-    unsplit = torch.bincount(parent)[parent] == 1
+    parent = descent.parent
+    unsplit = descent.count[parent] == 1
     out = torch.where(unsplit, form_factors[parent], torch.zeros((), dtype=form_factors.dtype))
-    mask = front[split_pixels]
-    pixels = split_pixels[mask]
+    pixels = split_pixels[front[split_pixels]]
     return out + torch.bincount(element[pixels], weights=weight[pixels], minlength=len(parent))

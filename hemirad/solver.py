@@ -19,7 +19,7 @@ from .gl import GLContext
 from .gradient import ShotView, form_factor_gradient
 from .mesh import Mesh
 from .refine import Refiner
-from .relabel import relabel_atlas, relabel_form_factors, split_pixels_of
+from .relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
 from .runtime import keep_freed_memory, torch_threads
 
 
@@ -74,9 +74,10 @@ class Seen:
     def relabelled(self, view: ShotView, parent: torch.Tensor, mesh: Mesh, weight: torch.Tensor) -> "Seen":
         """What the same hemicube sees after a split (``relabel.py``): ``parent`` (T',) maps
         the new ``mesh``'s elements to the old ones; ``view`` is this pass's ShotView."""
-        pixels = split_pixels_of(self.element, parent)
-        element = relabel_atlas(self.element, view.hits(pixels), pixels, parent, mesh.corners, mesh.normals)
-        form_factors = relabel_form_factors(self.form_factors, parent, element, self.front, weight, pixels)
+        descent = descendants(parent)
+        pixels = split_pixels_of(self.element, descent)
+        element = relabel_atlas(self.element, view.hits(pixels), pixels, descent, mesh.corners, mesh.normals)
+        form_factors = relabel_form_factors(self.form_factors, descent, element, self.front, weight, pixels)
         return Seen(element, self.front, self.eye, self.frame, form_factors, pixels)
 
 

@@ -13,11 +13,11 @@ from patches import refined_solve
 
 def test_descendants_group_new_elements_by_parent():
     parent = torch.tensor([0, 2, 1, 1, 1, 3, 3, 3, 3])
-    kept, ordered, start, count = descendants(parent)
-    assert count.tolist() == [1, 3, 1, 4]
-    assert kept[0] == 0 and kept[2] == 1
-    assert ordered[start[1]:start[1] + 3].tolist() == [2, 3, 4]
-    assert ordered[start[3]:start[3] + 4].tolist() == [5, 6, 7, 8]
+    d = descendants(parent)
+    assert d.count.tolist() == [1, 3, 1, 4]
+    assert d.kept[0] == 0 and d.kept[2] == 1
+    assert d.ordered[d.start[1]:d.start[1] + 3].tolist() == [2, 3, 4]
+    assert d.ordered[d.start[3]:d.start[3] + 4].tolist() == [5, 6, 7, 8]
 
 
 def test_relabelled_atlas_is_the_new_render_but_for_a_few_edge_pixels():
@@ -35,14 +35,15 @@ def test_relabelled_atlas_is_the_new_render_but_for_a_few_edge_pixels():
         selected[lamp] = False
         new_mesh, parent = Refiner(scene.refine, emission).split(mesh, selected)  # with 2:1 grading
         assert int((parent == lamp).sum()) == 1
-        pixels = split_pixels_of(view.element, parent)
+        descent = descendants(parent)
+        pixels = split_pixels_of(view.element, descent)
         assert len(pixels) > 10000
-        relabelled = relabel_atlas(view.element, view.hits(pixels), pixels, parent, new_mesh.corners,
+        relabelled = relabel_atlas(view.element, view.hits(pixels), pixels, descent, new_mesh.corners,
                                    new_mesh.normals)
         # the form factors carried over are those of the relabelled atlas, bit for bit
         weight = ff.weights.reshape(-1)
         F_old = element_form_factors(view.element, view.front, weight, mesh.num_elements)
-        F_new = relabel_form_factors(F_old, parent, relabelled, view.front, weight, pixels)
+        F_new = relabel_form_factors(F_old, descent, relabelled, view.front, weight, pixels)
         assert torch.equal(F_new, element_form_factors(relabelled, view.front, weight, new_mesh.num_elements))
         ff.set_geometry(new_mesh)
         rendered, _, _, _ = ff.render(int(torch.nonzero(parent == lamp)[0]))
