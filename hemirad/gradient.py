@@ -85,6 +85,38 @@ def pixel_pairs(resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
     return right, up
 
 
+@lru_cache(maxsize=8)
+def same_face_rows(resolution: int) -> torch.Tensor:
+    """(3R - 1,) bool: atlas row r and row r + 1 lie on one face (their vertical pairs are
+    ``neighbour_pairs``'). Do not modify (cached)."""
+    rows = pixel_faces(resolution)
+    return rows[:-1] == rows[1:]
+
+
+def boundary_pairs(label: torch.Tensor, resolution: int) -> torch.Tensor:
+    """(M,) sorted indices into ``neighbour_pairs`` of the pairs whose two pixels carry
+    different labels (neither of them -1): elements, or the planes they lie in.
+
+    Found by comparing the atlas with itself shifted by one column and one row, over
+    contiguous memory, instead of gathering both ends of every pair; the result is the
+    same, in the same order.
+
+    Args:
+        label: (P,) int64 per pixel, -1 for none.
+    """
+    R = resolution
+    image = label.reshape(3 * R, R)
+    seen = image >= 0
+
+    def differ(x, y, sx, sy):
+        return (x != y) & sx & sy
+
+    horizontal = differ(image[:, :-1], image[:, 1:], seen[:, :-1], seen[:, 1:]).reshape(-1)
+    same_face = same_face_rows(R)
+    vertical = differ(image[:-1][same_face], image[1:][same_face], seen[:-1][same_face], seen[1:][same_face])
+    return torch.cat([horizontal.nonzero().reshape(-1), vertical.reshape(-1).nonzero().reshape(-1) + len(horizontal)])
+
+
 def pairs_touching(pixels: torch.Tensor, resolution: int) -> torch.Tensor:
     """(M,) sorted indices into ``neighbour_pairs`` of the pairs that include any of ``pixels``."""
     right, up = pixel_pairs(resolution)
@@ -284,30 +316,28 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
     """
     R = view.resolution
     a, b, step = neighbour_pairs(R)
-    if wanted is not None:  # first the pairs that touch a wanted element's pixel
-        wanted_pixel = view.wanted_pixels(wanted, pixels)
-        if len(wanted_pixel) < len(view.element) // 16:  # few: found from the pixels
-            pair = pairs_touching(wanted_pixel, R)
-        else:
-            marked = torch.zeros(len(view.element), dtype=torch.bool)
-            marked[wanted_pixel] = True
-            pair = (marked[a] | marked[b]).nonzero().reshape(-1)
-        a, b = a[pair], b[pair]
-    ea, eb = view.element[a], view.element[b]
-    keep = (ea != eb) & (ea >= 0) & (eb >= 0)
-    if plane_ids is not None:
-        keep &= plane_ids[ea.clamp(min=0)] != plane_ids[eb.clamp(min=0)]
+    if pixels is not None and len(pixels) < len(view.element) // 16:
+        # A later pass of a refining shot: the few pairs that touch a wanted element's pixel.
+        pair = pairs_touching(view.wanted_pixels(wanted, pixels), R)
+        ea, eb = view.element[a[pair]], view.element[b[pair]]
+        keep = (ea != eb) & (ea >= 0) & (eb >= 0)
+        if plane_ids is not None:
+            keep &= plane_ids[ea.clamp(min=0)] != plane_ids[eb.clamp(min=0)]
+    else:  # all pairs across an element (or plane) boundary, then those touching a wanted element
+        label = view.element
+        if plane_ids is not None:
+            label = torch.where(label >= 0, plane_ids[label.clamp(min=0)], -1)
+        pair = boundary_pairs(label, R)
+        ea, eb = view.element[a[pair]], view.element[b[pair]]
+        keep = torch.ones(len(pair), dtype=torch.bool) if wanted is None else wanted[ea] | wanted[eb]
     keep = keep.nonzero().reshape(-1)
-    pair = keep if wanted is None else pair[keep]
-    a, b, ea, eb = a[keep], b[keep], ea[keep], eb[keep]
-    # Most such pairs are coplanar neighbours on a finely meshed surface: everything up to
-    # the plane tests runs over all of them, in components-first layout, with each
-    # element's plane n . x = offset and the eye's side of it computed once.
-    offset = (points * normals).sum(1)  # (T,)
-    eye_side = torch.sign(normals @ view.eye - offset)  # (T,)
-
+    pair = pair[keep]
+    a, b, ea, eb = a[pair], b[pair], ea[keep], eb[keep]
+    # Without plane ids most such pairs are coplanar neighbours on a finely meshed surface:
+    # the plane tests run over all of them, in components-first layout.
     def side(X, k):  # signed distance of X (3, K) from element k's plane, positive on the eye's side
-        return ((view.normals_by_component[:, k] * X).sum(0) - offset[k]) * eye_side[k]
+        n, p = view.normals_by_component[:, k], points[k].T
+        return (n * (X - p)).sum(0) * torch.sign((n * (view.eye[:, None] - p)).sum(0))
 
     Xa, Xb = view.hits(a), view.hits(b)  # (3, K)
     da2 = ((Xa - view.eye[:, None]) ** 2).sum(0)

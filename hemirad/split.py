@@ -25,10 +25,44 @@ from .mesh import Mesh
 PATTERNS = ("pattern1", "pattern2")
 
 
-def _edge_keys(a: torch.Tensor, b: torch.Tensor, num_vertices: int) -> torch.Tensor:
-    """One int64 key per undirected edge: ``min * V + max``. Exact for V < 3e9."""
+_KEY_BASE = 1 << 32
+
+
+def _edge_keys(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """One int64 key per undirected edge: ``min * 2^32 + max``. Exact for V < 2^31; the
+    same key in every mesh, so an index of keys carries over from a mesh to its split."""
     lo, hi = torch.minimum(a, b), torch.maximum(a, b)
-    return lo * num_vertices + hi
+    return lo * _KEY_BASE + hi
+
+
+def _midpoint_index(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
+    """The sorted keys of the edges splitting made midpoints on, and those midpoints: (M,) each.
+
+    Cached in the mesh (meshes are immutable); ``split_triangles`` hands its output the
+    index merged with the new midpoints, so a chain of splits never sorts it again.
+    """
+    cached = mesh.__dict__.get("_midpoint_index")
+    if cached is None:
+        parents = mesh.edge_parents
+        mid_index = torch.nonzero(parents[:, 0] >= 0).reshape(-1)
+        keys, order = torch.sort(_edge_keys(parents[mid_index, 0], parents[mid_index, 1]))
+        cached = mesh.__dict__["_midpoint_index"] = (keys, mid_index[order])
+    return cached
+
+
+def _merged_index(index: tuple[torch.Tensor, torch.Tensor], keys: torch.Tensor,
+                  midpoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``_midpoint_index`` with the (k,) new ``midpoints`` on the edges of ``keys`` added
+    (no key is in it yet: an edge is split once)."""
+    old_keys, old_mid = index
+    keys, order = torch.sort(keys)
+    at = torch.searchsorted(old_keys, keys) + torch.arange(len(keys))  # positions in the merged list
+    is_new = torch.zeros(len(old_keys) + len(keys), dtype=torch.bool)
+    is_new[at] = True
+    merged_keys, merged_mid = torch.empty_like(is_new, dtype=torch.int64), torch.empty_like(is_new, dtype=torch.int64)
+    merged_keys[at], merged_mid[at] = keys, midpoints[order]
+    merged_keys[~is_new], merged_mid[~is_new] = old_keys, old_mid
+    return merged_keys, merged_mid
 
 
 def midpoint_lookup(mesh: Mesh):
@@ -39,18 +73,10 @@ def midpoint_lookup(mesh: Mesh):
         indices (in either order) and giving, for each pair, the vertex whose
         ``edge_parents`` is that pair, or -1 where the edge has never been split.
     """
-    num_vertices = len(mesh.vertices)
-    cached = mesh.__dict__.get("_midpoint_index")  # meshes are immutable: sort once per mesh
-    if cached is None:
-        parents = mesh.edge_parents
-        mid_index = torch.nonzero(parents[:, 0] >= 0).reshape(-1)
-        keys = _edge_keys(parents[mid_index, 0], parents[mid_index, 1], num_vertices)
-        keys, order = torch.sort(keys)
-        cached = mesh.__dict__["_midpoint_index"] = (keys, mid_index[order])
-    keys, mid_index = cached
+    keys, mid_index = _midpoint_index(mesh)
 
     def find(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        query = _edge_keys(a, b, num_vertices)
+        query = _edge_keys(a, b)
         if len(keys) == 0:
             return torch.full_like(query, -1)
         pos = torch.searchsorted(keys, query).clamp_max(len(keys) - 1)
@@ -93,10 +119,8 @@ def _split_pattern2(mesh: Mesh, chosen: torch.Tensor) -> tuple[torch.Tensor, tor
     # One entry per distinct edge among the chosen triangles: an edge shared by two chosen
     # triangles gets a single midpoint. torch.unique sorts, so new vertices come out in a
     # deterministic order (by their sorted end vertices).
-    keys = lo * num_vertices + hi
-    unique_keys, inverse = torch.unique(keys, sorted=True, return_inverse=True)
-    unique_lo = unique_keys // num_vertices
-    unique_hi = unique_keys % num_vertices
+    unique_keys, inverse = torch.unique(_edge_keys(lo, hi), sorted=True, return_inverse=True)
+    unique_lo, unique_hi = unique_keys // _KEY_BASE, unique_keys % _KEY_BASE
 
     # Reuse a midpoint an earlier split made on the same edge (the neighbour was split
     # before); only the rest get new vertices.
@@ -171,6 +195,11 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
     )
     if "plane_ids" in mesh.__dict__:  # children lie in their parent's plane
         out.__dict__["plane_ids"] = mesh.plane_ids[parent]
+    if "_midpoint_index" in mesh.__dict__:
+        new_midpoints = torch.nonzero(new_parents[:, 0] >= 0).reshape(-1)
+        out.__dict__["_midpoint_index"] = _merged_index(
+            mesh.__dict__["_midpoint_index"], _edge_keys(new_parents[new_midpoints, 0], new_parents[new_midpoints, 1]),
+            len(mesh.vertices) + new_midpoints)
     return out, parent
 
 

@@ -179,3 +179,16 @@ def test_pairs_touching_some_pixels_are_those_a_full_scan_finds():
     marked[pixels] = True
     expected = (marked[a] | marked[b]).nonzero().reshape(-1)
     assert torch.equal(pairs_touching(pixels, R), expected)
+
+
+def test_boundary_pairs_found_by_image_shifts_are_those_a_scan_of_every_pair_finds():
+    from hemirad.gradient import boundary_pairs, neighbour_pairs
+
+    R = 16
+    a, b, _ = neighbour_pairs(R)
+    generator = torch.Generator().manual_seed(3)
+    # blocks of elements with holes, so that pairs cross faces' seams, element edges and empty pixels
+    element = torch.randint(-1, 4, (3 * R * R // 4,), generator=generator).repeat_interleave(4)
+    expected = ((element[a] != element[b]) & (element[a] >= 0) & (element[b] >= 0)).nonzero().reshape(-1)
+    assert len(expected) > 100
+    assert torch.equal(boundary_pairs(element, R), expected)

@@ -195,3 +195,20 @@ def test_pattern2_keeps_shapes_pattern1_degrades():
     for m in (p1, p2):
         assert abs(float(m.areas.sum()) - 1.0) < 1e-12
         assert (m.normals[:, 2] > 0).all()
+
+
+@pytest.mark.parametrize("pattern", ["pattern1", "pattern2"])
+def test_midpoint_index_carried_through_splits_is_the_one_built_afresh(pattern):
+    from hemirad.split import _midpoint_index
+
+    g = torch.Generator().manual_seed(5)
+    mesh = _jittered_grid()
+    _midpoint_index(mesh)  # built once; every split below carries it over
+    for _ in range(4):
+        mesh, _ = split_triangles(mesh, torch.rand(mesh.num_elements, generator=g) < 0.3, pattern)
+    carried = mesh.__dict__["_midpoint_index"]
+    fresh = Mesh(mesh.vertices, mesh.triangles, mesh.surface, mesh.material, level=mesh.level,
+                 edge_parents=mesh.edge_parents)
+    built = _midpoint_index(fresh)
+    assert (len(built[0]) > 0) == (pattern == "pattern2")
+    assert torch.equal(carried[0], built[0]) and torch.equal(carried[1], built[1])
