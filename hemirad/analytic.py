@@ -10,9 +10,11 @@ import math
 
 import torch
 
+from .device import as_tensor
+
 
 def _t(x) -> torch.Tensor:
-    return torch.as_tensor(x, dtype=torch.float64)
+    return as_tensor(x, dtype=torch.float64)
 
 
 def parallel_rectangles(a, b, c) -> torch.Tensor:
@@ -74,7 +76,7 @@ def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: tor
     """
     T = len(triangles)
     d = (triangles - point) @ normal  # (T, 3) heights above the tangent plane
-    nxt = torch.roll(torch.arange(3), -1)
+    nxt = torch.tensor([1, 2, 0], device=triangles.device)
     d0, d1 = d, d[:, nxt]
     v0, v1 = triangles, triangles[:, nxt]
     crossing = (d0 > 0) != (d1 > 0)
@@ -83,7 +85,7 @@ def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: tor
     # Sutherland-Hodgman in fixed slots: [v0, cut01, v1, cut12, v2, cut20], kept in order.
     candidates = torch.stack([v0, cut], dim=2).reshape(T, 6, 3)
     valid = torch.stack([d0 > 0, crossing], dim=2).reshape(T, 6)
-    slot = torch.arange(6).expand(T, 6)
+    slot = torch.arange(6, device=triangles.device).expand(T, 6)
     order = torch.argsort(torch.where(valid, slot, slot + 6), dim=1, stable=True)
     polygon = torch.gather(candidates, 1, order[..., None].expand(T, 6, 3))
     count = valid.sum(1, keepdim=True)  # (T, 1) vertices of the clipped polygon, 0 to 4

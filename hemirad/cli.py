@@ -58,6 +58,14 @@ def _resolution(text: str) -> int:
     return value
 
 
+def _device(text: str) -> str:
+    from .device import DEVICE_NAMES, is_device_name
+
+    if not is_device_name(text):
+        raise argparse.ArgumentTypeError(f"expected one of {', '.join(DEVICE_NAMES)}, got {text!r}")
+    return text
+
+
 def _positive_float(text: str) -> float:
     value = _number(text)
     if not value > 0 or value == float("inf"):
@@ -92,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--unshot-fraction", type=_fraction,
                         help="stop when unshot / emitted power falls below this (solver.unshot_fraction)")
     parser.add_argument("--resolution", type=_resolution, help="hemicube resolution (solver.resolution)")
+    parser.add_argument("--device", type=_device,
+                        help="where the solve runs: cpu (the default), cuda, cuda:N (PyTorch on CUDA, hemicubes "
+                             "drawn by the GPU's OpenGL) or auto (cuda when there is one) (solver.device)")
     refine = parser.add_argument_group("adaptive meshing (override the scene's refine block)")
     refine.add_argument("--refine", choices=("none", "pattern1", "pattern2"),
                         help="split pattern: pattern1 (centroid, 1 -> 3), pattern2 (edge midpoints, 1 -> 4)")
@@ -162,7 +173,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
 
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
     scene = load_scene(args.scene)
-    overrides = {"max_shots": args.shots, "unshot_fraction": args.unshot_fraction, "resolution": args.resolution}
+    overrides = {"max_shots": args.shots, "unshot_fraction": args.unshot_fraction, "resolution": args.resolution,
+                 "device": args.device}
     scene.solver = replace(scene.solver, **{k: v for k, v in overrides.items() if v is not None})
     overrides = {"pattern": args.refine, "criterion": args.criterion, "threshold": args.threshold,
                  "relative": args.relative, "max_depth": args.max_depth, "max_elements": args.max_elements}

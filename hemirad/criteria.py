@@ -87,8 +87,8 @@ def neighbor_difference_score(ctx: ShotContext) -> torch.Tensor:
     V = len(ctx.mesh.vertices)
     spread = value[:, None].expand(-1, 3).reshape(-1)
     at = triangles.reshape(-1)
-    high = torch.full((V,), -torch.inf, dtype=value.dtype).scatter_reduce(0, at, spread, "amax")
-    low = torch.full((V,), torch.inf, dtype=value.dtype).scatter_reduce(0, at, spread, "amin")
+    high = torch.full((V,), -torch.inf, dtype=value.dtype, device=value.device).scatter_reduce(0, at, spread, "amax")
+    low = torch.full((V,), torch.inf, dtype=value.dtype, device=value.device).scatter_reduce(0, at, spread, "amin")
     return torch.maximum(high[triangles] - value[:, None], value[:, None] - low[triangles]).amax(dim=1)
 
 

@@ -18,6 +18,7 @@ import math
 import numpy as np
 import torch
 
+from .device import as_tensor
 from .mesh import Mesh
 from .split import midpoint_lookup
 
@@ -73,8 +74,9 @@ def vertex_values(mesh: Mesh, element_values: torch.Tensor) -> torch.Tensor:
 
 def luminance(rgb: torch.Tensor) -> torch.Tensor:
     """(..., 3) linear RGB -> (...) relative luminance (Rec. 709 weights)."""
-    rgb = torch.as_tensor(rgb)
-    weights = torch.tensor(REC709_LUMINANCE, dtype=rgb.dtype if rgb.is_floating_point() else torch.float64)
+    rgb = as_tensor(rgb)
+    weights = torch.tensor(REC709_LUMINANCE, dtype=rgb.dtype if rgb.is_floating_point() else torch.float64,
+                           device=rgb.device)
     return rgb.to(weights.dtype) @ weights
 
 

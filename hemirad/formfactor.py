@@ -7,16 +7,15 @@ from __future__ import annotations
 
 import math
 import time
-from functools import lru_cache
-
 import numpy as np
 import torch
 
+from .device import cached_per_device
 from .hemicube import BACK_FACE_BIT, FACES, Hemicube, face_viewports, tangent_frame
 from .mesh import Mesh
 
 
-@lru_cache(maxsize=8)
+@cached_per_device
 def hemicube_directions(resolution: int) -> torch.Tensor:
     """Unnormalised directions through every pixel centre, in the hemicube's local frame.
 
@@ -24,7 +23,7 @@ def hemicube_directions(resolution: int) -> torch.Tensor:
     lies at f + sx r + sy u, on the unit cube around the eye.
 
     Returns:
-        (3R, R, 3) float64; do not modify (cached).
+        (3R, R, 3) float64 (on ``device``, the second argument); do not modify (cached).
     """
     R = resolution
     out = torch.empty(3 * R, R, 3, dtype=torch.float64)
@@ -52,12 +51,13 @@ def raw_delta_form_factors(resolution: int) -> torch.Tensor:
     return d[..., 2] * (2.0 / resolution) ** 2 / (math.pi * r2 * r2)
 
 
-@lru_cache(maxsize=8)
+@cached_per_device
 def delta_form_factors(resolution: int) -> torch.Tensor:
     """The raw weights scaled to sum to exactly 1, so a closed scene conserves energy to rounding.
 
     Returns:
-        (3R, R) float64; do not modify (cached).
+        (3R, R) float64 (on ``device``, the second argument: the same numbers on every
+        device); do not modify (cached).
     """
     w = raw_delta_form_factors(resolution)
     return w / w.sum()
@@ -88,7 +88,18 @@ def element_form_factors(element: torch.Tensor, front: torch.Tensor, weights: to
     Returns:
         (num_elements,) float64.
     """
-    return torch.bincount(element[front], weights=weights[front], minlength=num_elements)
+    return sum_by_index(element[front], weights[front], num_elements)
+
+
+def sum_by_index(index: torch.Tensor, values: torch.Tensor, size: int) -> torch.Tensor:
+    """(size,) the sum of the (N,) ``values`` at each of their (N,) ``index``.
+
+    On the CPU a bincount (a sequential sum in pixel order); on CUDA an index_add, which
+    ``runtime.deterministic`` makes sum in a fixed order (bincount has no such mode).
+    """
+    if index.device.type == "cpu":
+        return torch.bincount(index, weights=values, minlength=size)
+    return torch.zeros(size, dtype=values.dtype, device=values.device).index_add_(0, index, values)
 
 
 class HemicubeFormFactors:
@@ -98,20 +109,23 @@ class HemicubeFormFactors:
         mesh: the elements (triangles counter-clockwise seen from the front).
         resolution: hemicube resolution R.
         cull: draw each hemicube face only the triangles in its frustum (same result, faster).
+        device: where the torch work runs (the mesh's tensors must be there); on CUDA the
+            OpenGL context must be on the GPU too (``GLContext.get(gpu=True)``).
     Attributes:
         seconds: time spent in the torch part (decoding and summing), beside the
             hemicube's own ``raster_seconds`` and ``readback_seconds``.
     """
 
-    def __init__(self, mesh: Mesh, resolution: int, cull: bool = True):
-        self.weights = delta_form_factors(resolution)
+    def __init__(self, mesh: Mesh, resolution: int, cull: bool = True, device: torch.device | str = "cpu"):
+        self.device = torch.device(device)
+        self.weights = delta_form_factors(resolution, self.device)
         lo, hi = mesh.bounding_box()
         diagonal = float((hi - lo).norm())
         # The eye sits just off the shooter so that its own plane (and coplanar neighbours)
         # falls below every face's field of view; depth is linear, so a close near plane is safe.
         self.eye_offset = self.near = 1e-6 * diagonal
         self.far = 1.01 * diagonal
-        self.hemicube = Hemicube(resolution, cull)
+        self.hemicube = Hemicube(resolution, cull, gpu=self.device.type == "cuda")
         self.set_geometry(mesh)
         self.seconds = 0.0
 
@@ -127,16 +141,17 @@ class HemicubeFormFactors:
         """Render the hemicube of element ``shooter`` (a point at its centroid).
 
         Returns:
-            element (3R, R) int64 and front (3R, R) bool (see ``decode_items``), the eye (3,)
-            and the hemicube's frame (3, 3).
+            element (3R, R) int64 and front (3R, R) bool (see ``decode_items``) on the
+            device, the eye (3,) and the hemicube's frame (3, 3) as NumPy arrays.
         """
-        normal = self.normals[shooter].numpy()
-        corners = self.corners[shooter].numpy()
+        normal = self.normals[shooter].cpu().numpy()
+        corners = self.corners[shooter].cpu().numpy()
         frame = tangent_frame(normal, corners[1] - corners[0])
-        eye = self.centroids[shooter].numpy() + self.eye_offset * normal
+        eye = self.centroids[shooter].cpu().numpy() + self.eye_offset * normal
         items = self.hemicube.render(eye, frame, self.near, self.far)
         start = time.perf_counter()
         element, front = decode_items(items)
+        element, front = element.to(self.device), front.to(self.device)
         self.seconds += time.perf_counter() - start
         return element, front, eye, frame
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import threading
 
 import moderngl
@@ -12,16 +13,23 @@ from .errors import HemiradInputError
 class GLContext:
     """Owns the process's moderngl context.
 
+    The context is made once, on first use. ``get(gpu=True)`` makes it on a hardware EGL
+    device (the NVIDIA one beside CUDA) instead of the first device EGL lists, and refuses
+    when the process already holds a software context: GL objects cannot move between
+    contexts, so ask for the GPU before anything else draws.
+
     GL calls from a thread other than the creating one silently do nothing with EGL, so
     ``get`` refuses them loudly instead.
     """
 
     _instance: "GLContext | None" = None
 
-    def __init__(self):
+    def __init__(self, gpu: bool = False):
         _load_triton_first()
         try:
-            self.ctx = moderngl.create_standalone_context(backend="egl", require=330)
+            self.ctx = _hardware_context() if gpu else _context(device_index=None)
+        except HemiradInputError:
+            raise
         except Exception as exc:  # the cause is nearly always missing system packages
             raise HemiradInputError(
                 "could not create a headless OpenGL context through EGL "
@@ -33,11 +41,15 @@ class GLContext:
         self.renderer = self.ctx.info.get("GL_RENDERER", "unknown")
 
     @classmethod
-    def get(cls) -> moderngl.Context:
+    def get(cls, gpu: bool = False) -> moderngl.Context:
         if cls._instance is None:
-            cls._instance = cls()
+            cls._instance = cls(gpu)
         if threading.get_ident() != cls._instance.thread:
             raise RuntimeError("OpenGL is used from a thread other than the one that made the context")
+        if gpu and _is_software(cls._instance.renderer):
+            raise HemiradInputError(
+                f"a GPU OpenGL context was asked for, but this process already renders with "
+                f"{cls._instance.renderer}; solve on the GPU before anything else in the process uses OpenGL.")
         return cls._instance.ctx
 
     @classmethod
@@ -48,7 +60,44 @@ class GLContext:
     @classmethod
     def is_software(cls) -> bool:
         """Whether the renderer runs on the CPU (Mesa's llvmpipe or softpipe)."""
-        return any(name in cls.renderer_name().lower() for name in ("llvmpipe", "softpipe", "software"))
+        return _is_software(cls.renderer_name())
+
+
+def _is_software(renderer: str) -> bool:
+    return any(name in renderer.lower() for name in ("llvmpipe", "softpipe", "software"))
+
+
+def _context(device_index: int | None) -> moderngl.Context:
+    settings = {} if device_index is None else {"device_index": device_index}
+    return moderngl.create_standalone_context(backend="egl", require=330, **settings)
+
+
+def _hardware_context(max_devices: int = 16) -> moderngl.Context:
+    """A context on the first EGL device whose renderer is not a software one.
+
+    EGL lists every vendor's devices (with glvnd, NVIDIA's and Mesa's side by side, in an
+    order that depends on the machine), so each is opened in turn until one is hardware.
+    """
+    if os.environ.get("GLCONTEXT_DEVICE_INDEX"):  # the user chose; glcontext honours it
+        return _context(None)
+    seen = []
+    for index in range(max_devices):
+        try:
+            ctx = _context(index)
+        except Exception as exc:  # past the last device, or one that cannot make a context
+            if "requested device index" in str(exc):
+                break
+            seen.append(f"device {index}: {exc}")
+            continue
+        renderer = ctx.info.get("GL_RENDERER", "unknown")
+        if not _is_software(renderer):
+            return ctx
+        seen.append(f"device {index}: {renderer}")
+        ctx.release()
+    raise HemiradInputError(
+        "a GPU was asked for, but no EGL device renders in hardware (" + ("; ".join(seen) or "none found") +
+        "). Install the NVIDIA driver's EGL library (libEGL_nvidia, with its glvnd vendor file), "
+        "or solve with --device cpu.")
 
 
 def _load_triton_first() -> None:

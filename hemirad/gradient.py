@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import cached_property
 
 import torch
 from torch.func import jacfwd
 
+from .device import cached_per_device
 from .formfactor import element_form_factors, hemicube_directions
 from .hemicube import FACES, face_viewports
 
@@ -34,7 +35,7 @@ warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*deprecated", c
                         module=r"torch\.jit")
 
 
-@lru_cache(maxsize=8)
+@cached_per_device
 def pixel_faces(resolution: int) -> torch.Tensor:
     """(3R,) int64: which hemicube face (index into ``FACES``) each atlas row belongs to."""
     rows = torch.empty(3 * resolution, dtype=torch.int64)
@@ -43,14 +44,14 @@ def pixel_faces(resolution: int) -> torch.Tensor:
     return rows
 
 
-@lru_cache(maxsize=8)
+@cached_per_device
 def pixel_directions(resolution: int) -> torch.Tensor:
     """(3, P) ``hemicube_directions`` flattened, components first: per-pixel arithmetic
     then runs over contiguous rows. Do not modify (cached)."""
     return hemicube_directions(resolution).reshape(-1, 3).T.contiguous()
 
 
-@lru_cache(maxsize=8)
+@cached_per_device
 def neighbour_pairs(resolution: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Every pair of 4-neighbour pixels within one face of the atlas (flattened indices).
 
@@ -69,7 +70,7 @@ def neighbour_pairs(resolution: int) -> tuple[torch.Tensor, torch.Tensor, torch.
     return torch.cat([horizontal[0], vertical[0]]), torch.cat([horizontal[1], vertical[1]]), step
 
 
-@lru_cache(maxsize=8)
+@cached_per_device
 def pixel_pairs(resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Where each pixel's pairs sit in ``neighbour_pairs``: (P,) the index of the pair with
     its right-hand neighbour and (P,) that with the neighbour above, -1 where there is none
@@ -85,7 +86,7 @@ def pixel_pairs(resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
     return right, up
 
 
-@lru_cache(maxsize=8)
+@cached_per_device
 def same_face_rows(resolution: int) -> torch.Tensor:
     """(3R - 1,) bool: atlas row r and row r + 1 lie on one face (their vertical pairs are
     ``neighbour_pairs``'). Do not modify (cached)."""
@@ -112,14 +113,14 @@ def boundary_pairs(label: torch.Tensor, resolution: int) -> torch.Tensor:
         return (x != y) & sx & sy
 
     horizontal = differ(image[:, :-1], image[:, 1:], seen[:, :-1], seen[:, 1:]).reshape(-1)
-    same_face = same_face_rows(R)
+    same_face = same_face_rows(R, label.device)
     vertical = differ(image[:-1][same_face], image[1:][same_face], seen[:-1][same_face], seen[1:][same_face])
     return torch.cat([horizontal.nonzero().reshape(-1), vertical.reshape(-1).nonzero().reshape(-1) + len(horizontal)])
 
 
 def pairs_touching(pixels: torch.Tensor, resolution: int) -> torch.Tensor:
     """(M,) sorted indices into ``neighbour_pairs`` of the pairs that include any of ``pixels``."""
-    right, up = pixel_pairs(resolution)
+    right, up = pixel_pairs(resolution, pixels.device)
     R = resolution
     found = torch.cat([right[pixels], right[(pixels - 1).clamp(min=0)][pixels >= 1],
                        up[pixels], up[(pixels - R).clamp(min=0)][pixels >= R]])
@@ -161,8 +162,8 @@ class ShotView:
             eye: (3,) and frame: (3, 3) as given to ``Hemicube.render``.
             normals, points: (T, 3) every element's unit normal and a point on its plane.
         """
-        eye = torch.as_tensor(eye, dtype=torch.float64)
-        return ShotView(eye, torch.as_tensor(frame, dtype=torch.float64), element.reshape(-1),
+        eye = torch.as_tensor(eye, dtype=torch.float64, device=element.device)
+        return ShotView(eye, torch.as_tensor(frame, dtype=torch.float64, device=element.device), element.reshape(-1),
                         front.reshape(-1), weight.reshape(-1), normals, ((points - eye) * normals).sum(1),
                         weight.shape[-1])
 
@@ -175,11 +176,11 @@ class ShotView:
         """
         if len(pixels) > len(self.element) // 8:
             return self._all_hits[:, pixels]
-        return self._hits(pixels, self.frame.T @ pixel_directions(self.resolution)[:, pixels])
+        return self._hits(pixels, self.frame.T @ pixel_directions(self.resolution, self.eye.device)[:, pixels])
 
     @cached_property
     def _all_hits(self) -> torch.Tensor:
-        return self._hits(slice(None), self.frame.T @ pixel_directions(self.resolution))
+        return self._hits(slice(None), self.frame.T @ pixel_directions(self.resolution, self.eye.device))
 
     def _hits(self, pixels, directions: torch.Tensor) -> torch.Tensor:
         k = self.element[pixels].clamp(min=0)
@@ -272,7 +273,7 @@ def interior_form_factors(c: torch.Tensor, patches: ReceiverPatches, num_element
         (T,) sum over the pixels q seeing j of K_q(c) = w_q kernel_q(c) / kernel_q(c0).
     """
     K = patches.scale * point_to_patch_kernel(c, patches)
-    return torch.zeros(num_elements, dtype=K.dtype).index_add(0, patches.element, K)
+    return torch.zeros(num_elements, dtype=K.dtype, device=K.device).index_add(0, patches.element, K)
 
 
 @dataclass
@@ -315,7 +316,7 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
         pixels: (N,) optional: the only pixels that may see a wanted element.
     """
     R = view.resolution
-    a, b, step = neighbour_pairs(R)
+    a, b, step = neighbour_pairs(R, view.eye.device)
     if pixels is not None and len(pixels) < len(view.element) // 16:
         # A later pass of a refining shot: the few pairs that touch a wanted element's pixel.
         pair = pairs_touching(view.wanted_pixels(wanted, pixels), R)
@@ -329,7 +330,7 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
             label = torch.where(label >= 0, plane_ids[label.clamp(min=0)], -1)
         pair = boundary_pairs(label, R)
         ea, eb = view.element[a[pair]], view.element[b[pair]]
-        keep = torch.ones(len(pair), dtype=torch.bool) if wanted is None else wanted[ea] | wanted[eb]
+        keep = torch.ones(len(pair), dtype=torch.bool, device=pair.device) if wanted is None else wanted[ea] | wanted[eb]
     keep = keep.nonzero().reshape(-1)
     pair = pair[keep]
     a, b, ea, eb = a[pair], b[pair], ea[keep], eb[keep]
@@ -370,12 +371,12 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
         return view.eye + (((points[k] - view.eye) * n).sum(1) / (ray * n).sum(1))[:, None] * ray
 
     weight = 0.5 * (view.weight[near] + view.weight[far])
-    return OcclusionPairs(on_plane(en), on_plane(ef), ef, axis, pixel_faces(R)[near // R], weight)
+    return OcclusionPairs(on_plane(en), on_plane(ef), ef, axis, pixel_faces(R, view.eye.device)[near // R], weight)
 
 
 def face_axes(frame: torch.Tensor) -> torch.Tensor:
     """(5, 3, 3) world forward, right and up axes of every hemicube face."""
-    local = torch.tensor([face[:3] for face in FACES], dtype=torch.float64)  # (5, 3, 3)
+    local = torch.tensor([face[:3] for face in FACES], dtype=torch.float64, device=frame.device)  # (5, 3, 3)
     return local @ frame
 
 
@@ -400,7 +401,7 @@ def shadow_edge_form_factors(c: torch.Tensor, view: ShotView, pairs: OcclusionPa
     shift = image_points(c) - image_points(view.eye)  # the second term is constant
     parallax = ((shift[:K] - shift[K:]) * pairs.axis).sum(1)
     term = -pairs.weight * parallax / h
-    return torch.zeros(num_elements, dtype=term.dtype).index_add(0, pairs.far_element, term)
+    return torch.zeros(num_elements, dtype=term.dtype, device=term.device).index_add(0, pairs.far_element, term)
 
 
 def form_factor_gradient(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
@@ -424,7 +425,7 @@ def form_factor_gradient(view: ShotView, normals: torch.Tensor, points: torch.Te
     pairs = occlusion_pairs(view, normals, points, wanted, plane_ids, pixels) if shadow_edges else None
 
     def F(c):
-        total = torch.zeros(T, dtype=torch.float64)
+        total = torch.zeros(T, dtype=torch.float64, device=view.eye.device)
         if interior:
             total = total + interior_form_factors(c, patches, T)
         if pairs is not None:

@@ -142,18 +142,19 @@ class Hemicube:
         cull: leave out of each face the triangles outside its frustum (the default). The
             atlas is the same without it (every face then draws every triangle); the
             option exists to show that.
+        gpu: draw with the process's GPU context (``GLContext.get(gpu=True)``).
     Attributes:
         raster_seconds, readback_seconds: accumulated time in drawing (culling included) and
             in read-back.
         drawn_triangles: triangles drawn by the last render, over its five faces.
     """
 
-    def __init__(self, resolution: int, cull: bool = True):
+    def __init__(self, resolution: int, cull: bool = True, gpu: bool = False):
         if resolution < 2 or resolution % 2:
             raise ValueError(f"hemicube resolution must be an even number >= 2, got {resolution}")
         self.resolution = resolution
         self.cull = cull
-        self.ctx = GLContext.get()
+        self.ctx = GLContext.get(gpu)
         self.program = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
         size = (resolution, 3 * resolution)
         self._color = self.ctx.renderbuffer(size, components=1, dtype="u4")

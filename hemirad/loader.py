@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from .device import DEVICE_NAMES, is_device_name
 from .errors import SceneError
 from .meshing import clean_triangles
 from .scene import (Box, Camera, FaceOverride, Material, MeshFile, Quad, RefineOptions, Room, Scene, SceneObject,
@@ -61,7 +62,7 @@ _OBJECT_REQUIRED = {
 _FACE_KEYS = ("material", "element_size")
 _TRANSFORM_KEYS = ("translate", "rotate", "scale", "matrix")
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
-_SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient")
+_SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
                 "interior", "shadow_edges", "view_surface")
 _PATTERNS = ("none", "pattern1", "pattern2")
@@ -595,6 +596,11 @@ class _Reader:
             opts.resolution = r
         if "ambient" in m:
             opts.ambient = self.boolean(m["ambient"], "solver.ambient")
+        if "device" in m:
+            if not is_device_name(m["device"]):
+                self.fail("solver.device", "one of " + ", ".join(DEVICE_NAMES), m["device"],
+                          "cuda needs PyTorch with CUDA and an NVIDIA GPU; auto picks it when there is one.")
+            opts.device = m["device"]
         return opts
 
     def boolean(self, v, key: str) -> bool:

@@ -11,6 +11,8 @@ from functools import cached_property
 
 import torch
 
+from .device import as_tensor
+
 
 @dataclass
 class Mesh:
@@ -38,17 +40,17 @@ class Mesh:
     edge_parents: torch.Tensor | None = None
 
     def __post_init__(self):
-        self.vertices = torch.as_tensor(self.vertices, dtype=torch.float64).reshape(-1, 3)
-        self.triangles = torch.as_tensor(self.triangles, dtype=torch.int64).reshape(-1, 3)
-        self.surface = torch.as_tensor(self.surface, dtype=torch.int64).reshape(-1)
-        self.material = torch.as_tensor(self.material, dtype=torch.int64).reshape(-1)
+        self.vertices = as_tensor(self.vertices, dtype=torch.float64).reshape(-1, 3)
+        self.triangles = as_tensor(self.triangles, dtype=torch.int64).reshape(-1, 3)
+        self.surface = as_tensor(self.surface, dtype=torch.int64).reshape(-1)
+        self.material = as_tensor(self.material, dtype=torch.int64).reshape(-1)
         n = len(self.triangles)
         if self.level is None:
-            self.level = torch.zeros(n, dtype=torch.int64)
+            self.level = torch.zeros(n, dtype=torch.int64, device=self.triangles.device)
         if self.edge_parents is None:
-            self.edge_parents = torch.full((len(self.vertices), 2), -1, dtype=torch.int64)
-        self.level = torch.as_tensor(self.level, dtype=torch.int64).reshape(-1)
-        self.edge_parents = torch.as_tensor(self.edge_parents, dtype=torch.int64).reshape(-1, 2)
+            self.edge_parents = torch.full((len(self.vertices), 2), -1, dtype=torch.int64, device=self.vertices.device)
+        self.level = as_tensor(self.level, dtype=torch.int64).reshape(-1)
+        self.edge_parents = as_tensor(self.edge_parents, dtype=torch.int64).reshape(-1, 2)
         if len(self.surface) != n or len(self.material) != n or len(self.level) != n:
             raise ValueError("surface, material and level need one entry per triangle")
         if len(self.edge_parents) != len(self.vertices):
@@ -97,19 +99,30 @@ class Mesh:
         planes = torch.cat([normals, offsets / max(float(self.vertices.abs().max()), 1e-30)], dim=1)  # (T, 4)
         S = int(self.surface.max()) + 1 if T else 0
         index = self.surface[:, None].expand(-1, 4)
-        high = torch.full((S, 4), -torch.inf, dtype=planes.dtype).scatter_reduce(0, index, planes, "amax")
-        low = torch.full((S, 4), torch.inf, dtype=planes.dtype).scatter_reduce(0, index, planes, "amin")
+        high = torch.full((S, 4), -torch.inf, dtype=planes.dtype, device=planes.device).scatter_reduce(0, index, planes, "amax")
+        low = torch.full((S, 4), torch.inf, dtype=planes.dtype, device=planes.device).scatter_reduce(0, index, planes, "amin")
         planar = ((high - low) < 1e-6).all(dim=1)  # (S,)
-        return torch.where(planar[self.surface], self.surface, S + torch.arange(T))
+        return torch.where(planar[self.surface], self.surface, S + torch.arange(T, device=planes.device))
 
     def bounding_box(self) -> tuple[torch.Tensor, torch.Tensor]:
         return self.vertices.min(dim=0).values, self.vertices.max(dim=0).values
 
     _TENSORS = ("vertices", "triangles", "surface", "material", "level", "edge_parents")
 
+    @property
+    def device(self) -> torch.device:
+        return self.vertices.device
+
+    def to(self, device: torch.device | str) -> "Mesh":
+        """The same mesh with its tensors on ``device`` (itself when they are there already)."""
+        device = torch.device(device)
+        if self.vertices.device == device:
+            return self
+        return Mesh(**{k: getattr(self, k).to(device) for k in self._TENSORS}, surface_names=list(self.surface_names))
+
     def state_dict(self) -> dict:
         """The mesh as tensors and its surface names (a list of strings), for checkpoints."""
-        return {**{k: getattr(self, k).clone() for k in self._TENSORS}, "surface_names": list(self.surface_names)}
+        return {**{k: getattr(self, k).cpu().clone() for k in self._TENSORS}, "surface_names": list(self.surface_names)}
 
     @classmethod
     def from_state_dict(cls, state: dict) -> "Mesh":

@@ -21,6 +21,7 @@ import torch
 from . import checkpoint as checkpoints
 from . import display, export, gltf
 from .errors import HemiradInputError, SceneError
+from .device import select_device
 from .gl import GLContext
 from .mesh import Mesh
 from .meshing import build_mesh
@@ -134,11 +135,11 @@ def _restore(solver: ProgressiveSolver, state: dict, run: dict, path, initial_el
                                 f"Start without --resume to begin afresh.") from exc
 
 
-def check_gl_limits(scene: Scene) -> None:
+def check_gl_limits(scene: Scene, gpu: bool = False) -> None:
     """Refuse, before any work, sizes the OpenGL framebuffers cannot hold: the hemicube atlas
     (R x 3R) and the supersampled camera image. Otherwise the image would fail only after
-    the whole solve."""
-    limit = int(GLContext.get().info.get("GL_MAX_RENDERBUFFER_SIZE", 4096))
+    the whole solve. ``gpu``: the solve draws with the GPU's context (made here if none is)."""
+    limit = int(GLContext.get(gpu).info.get("GL_MAX_RENDERBUFFER_SIZE", 4096))
     file = str(scene.source) if scene.source else "<scene>"
     r = scene.solver.resolution
     if 3 * r > limit:
@@ -186,7 +187,8 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     if checkpoint is None and (checkpoint_every or resume):
         raise ValueError("checkpoint_every and resume need a checkpoint path")
     options = scene.solver
-    check_gl_limits(scene)
+    device = select_device(options.device)
+    check_gl_limits(scene, gpu=device.type == "cuda")
     saved = None
     if checkpoint is not None:
         fingerprint = checkpoints.fingerprint(scene)
@@ -200,7 +202,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     refiner = Refiner(scene.refine, emission) if scene.refine.enabled else None
     # Built from the initial mesh even when resuming: its bounds set the hemicube's near and
     # far planes, which must be those of the run being continued.
-    solver = ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner)
+    solver = ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner, device=device)
     before = {"mesh": 0.0, "solve": 0.0}  # seconds spent by the runs this one continues
     resumed_from = None
     try:
@@ -229,7 +231,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     finally:
         solver.close()
     solved = time.perf_counter()
-    final = solver.mesh
+    final = solver.mesh.to("cpu")
     levels = torch.bincount(final.level)
     stats = {
         "scene": str(scene.source) if scene.source else None,
@@ -249,8 +251,10 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
         "absorbed_power": state.absorbed.tolist(),
         "escaped_power": state.escaped.tolist(),
         "gl_renderer": GLContext.renderer_name(),
+        "device": str(device),
         "resumed_from_shot": resumed_from,
         "seconds": {"mesh": before["mesh"] + meshed - start, "solve": before["solve"] + solved - meshed,
                     "solve_phases": solver.timings()},
     }
-    return Result(scene, final, state.radiosity, state.unshot, solver.reflectance, solver.emission, stats)
+    return Result(scene, final, state.radiosity.cpu(), state.unshot.cpu(), solver.reflectance.cpu(),
+                  solver.emission.cpu(), stats)

@@ -77,16 +77,17 @@ class Refiner:
         Returns:
             the new mesh, and (T',) the index in ``mesh`` each new element descends from.
         """
-        parent = torch.arange(mesh.num_elements)
+        device = mesh.triangles.device
+        parent = torch.arange(mesh.num_elements, device=device)
         while bool(selected.any()):
             self.splits += int(selected.sum())
-            touched = torch.zeros(len(mesh.vertices), dtype=torch.bool)
+            touched = torch.zeros(len(mesh.vertices), dtype=torch.bool, device=device)
             touched[mesh.triangles[selected].reshape(-1)] = True
             mesh, step = split_triangles(mesh, selected, self.options.pattern)
             parent = parent[step]
             if self.options.pattern != "pattern2":
                 break
-            near = torch.cat([touched, torch.ones(len(mesh.vertices) - len(touched), dtype=torch.bool)])
+            near = torch.cat([touched, torch.ones(len(mesh.vertices) - len(touched), dtype=torch.bool, device=device)])
             selected = unbalanced(mesh, near)
             room = (self.options.max_elements - mesh.num_elements) // (self.children - 1)
             if int(selected.sum()) > room:  # the budget wins over grading

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import torch
 
+from .formfactor import sum_by_index
+
 
 @dataclass
 class Descent:
@@ -41,7 +43,8 @@ def descendants(parent: torch.Tensor) -> Descent:
             every old element has at least one.
     """
     count = torch.bincount(parent)
-    kept = torch.zeros(len(count), dtype=torch.int64).scatter_(0, parent, torch.arange(len(parent)))
+    kept = torch.zeros(len(count), dtype=torch.int64, device=parent.device).scatter_(
+        0, parent, torch.arange(len(parent), device=parent.device))
     in_split = (count[parent] > 1).nonzero().reshape(-1)  # few: sort only these
     ordered = in_split[torch.argsort(parent[in_split], stable=True)]
     split_count = torch.where(count > 1, count, 0)
@@ -73,9 +76,10 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
     # hit point best: the largest smallest signed distance to its three edges (inside: >= 0).
     old_of_pixel = element[split_pixels]
     n_candidates = descent.count[old_of_pixel]
-    pixel = torch.repeat_interleave(torch.arange(len(split_pixels)), n_candidates)
+    device = element.device
+    pixel = torch.repeat_interleave(torch.arange(len(split_pixels), device=device), n_candidates)
     first = torch.cumsum(n_candidates, 0) - n_candidates
-    rank = torch.arange(len(pixel)) - first[pixel]
+    rank = torch.arange(len(pixel), device=device) - first[pixel]
     candidate = descent.ordered[descent.start[old_of_pixel][pixel] + rank]
     y = hits[:, pixel].T  # (M, 3)
     a, b, c = corners[candidate].unbind(dim=1)
@@ -86,9 +90,10 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
         return (torch.linalg.cross(edge, y - p) * n).sum(1) / edge.norm(dim=1)
 
     margin = torch.minimum(torch.minimum(inside(a, b), inside(b, c)), inside(c, a))
-    best = torch.full((len(split_pixels),), -torch.inf, dtype=margin.dtype).scatter_reduce(0, pixel, margin, "amax")
+    best = torch.full((len(split_pixels),), -torch.inf, dtype=margin.dtype, device=device).scatter_reduce(
+        0, pixel, margin, "amax")
     is_best = margin == best[pixel]
-    chosen = torch.full((len(split_pixels),), len(descent.parent), dtype=torch.int64)
+    chosen = torch.full((len(split_pixels),), len(descent.parent), dtype=torch.int64, device=device)
     chosen = chosen.scatter_reduce(0, pixel[is_best], candidate[is_best], "amin")  # ties: the lower index
     out[split_pixels] = chosen
     return out
@@ -109,6 +114,6 @@ def relabel_form_factors(form_factors: torch.Tensor, descent: Descent, element: 
     """
     parent = descent.parent
     unsplit = descent.count[parent] == 1
-    out = torch.where(unsplit, form_factors[parent], torch.zeros((), dtype=form_factors.dtype))
+    out = torch.where(unsplit, form_factors[parent], torch.zeros((), dtype=form_factors.dtype, device=parent.device))
     pixels = split_pixels[front[split_pixels]]
-    return out + torch.bincount(element[pixels], weights=weight[pixels], minlength=len(parent))
+    return out + sum_by_index(element[pixels], weight[pixels], len(parent))

@@ -18,6 +18,26 @@ _allocator_tuned = False
 
 
 @contextmanager
+def deterministic(device: torch.device):
+    """Run the block with PyTorch's deterministic algorithms on CUDA, then restore the setting.
+
+    On CUDA, index_add and scatter sums add in whatever order the threads finish: the same
+    scene would give numbers that differ in the last bits from run to run, and a refinement
+    threshold can turn that into a different mesh. In deterministic mode they sum in a
+    fixed order. On the CPU every operation a solve uses is deterministic already.
+    """
+    if device.type != "cuda":
+        yield
+        return
+    before, warn_only = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(before, warn_only=warn_only)
+
+
+@contextmanager
 def torch_threads(count: int):
     """Run the block with torch's intra-op pool at ``count`` threads, then restore it.
 

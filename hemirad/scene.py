@@ -101,6 +101,7 @@ class SolverOptions:
     unshot_fraction: float = 1e-3  # stop when unshot power / emitted power falls below
     resolution: int = 128  # hemicube top face is resolution x resolution pixels
     ambient: bool = True  # add Cohen et al.'s ambient term to the displayed radiosity
+    device: str = "cpu"  # where the torch work runs: cpu, cuda, cuda:N or auto (hemirad.device)
 
 
 @dataclass

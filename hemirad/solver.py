@@ -7,7 +7,7 @@ receiver j the radiosity  rho_j dB_s F_sj A_s / A_j  (DESIGN §1).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import torch
@@ -20,7 +20,7 @@ from .gradient import ShotView, form_factor_gradient
 from .mesh import Mesh
 from .refine import Refiner
 from .relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
-from .runtime import keep_freed_memory, torch_threads
+from .runtime import deterministic, keep_freed_memory, torch_threads
 
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
@@ -96,8 +96,13 @@ class SolverState:
     radiosity: torch.Tensor
     unshot: torch.Tensor
     shots: int = 0
-    absorbed: torch.Tensor = field(default_factory=lambda: torch.zeros(3, dtype=torch.float64))
-    escaped: torch.Tensor = field(default_factory=lambda: torch.zeros(3, dtype=torch.float64))
+    absorbed: torch.Tensor | None = None
+    escaped: torch.Tensor | None = None
+
+    def __post_init__(self):
+        zero = torch.zeros(3, dtype=torch.float64, device=self.radiosity.device)
+        self.absorbed = zero.clone() if self.absorbed is None else self.absorbed.to(zero)
+        self.escaped = zero.clone() if self.escaped is None else self.escaped.to(zero)
 
 
 @dataclass
@@ -122,19 +127,26 @@ class ProgressiveSolver:
         relabel: between the passes of a refining shot, carry the hemicube's item atlas over
             to the children (``relabel.py``) instead of rendering again; the shot is still
             committed with a real render of the final mesh.
+        device: where the tensors live and the torch work runs (``device.select_device``);
+            on CUDA the hemicubes are drawn by the GPU's OpenGL context. The inputs may be
+            anywhere; ``state_dict`` is always on the CPU.
     Attributes:
-        mesh, reflectance, emission, areas: current, as refinement changes them.
+        mesh, reflectance, emission, areas: current, as refinement changes them (on ``device``).
     """
 
     def __init__(self, mesh: Mesh, reflectance: torch.Tensor, emission: torch.Tensor, resolution: int,
-                 refiner: Refiner | None = None, cull: bool = True, relabel: bool = True):
+                 refiner: Refiner | None = None, cull: bool = True, relabel: bool = True,
+                 device: torch.device | str = "cpu"):
+        self.device = torch.device(device)
+        mesh = mesh.to(self.device)
+        reflectance, emission = reflectance.to(self.device), emission.to(self.device)
         self.mesh = mesh
         self.reflectance = reflectance
         self.emission = emission
         self.areas = mesh.areas
         self.state = SolverState(radiosity=emission.clone(), unshot=emission.clone())
         self.emitted_power = (emission * self.areas[:, None]).sum(0)  # (3,)
-        self.form_factors = HemicubeFormFactors(mesh, resolution, cull)
+        self.form_factors = HemicubeFormFactors(mesh, resolution, cull, self.device)
         self.refiner = refiner
         self.relabel = relabel
         self.update_seconds = self.gradient_seconds = self.refine_seconds = 0.0
@@ -163,7 +175,7 @@ class ProgressiveSolver:
             start = time.perf_counter()
             F = element_form_factors(element, front, ff.weights.reshape(-1), self.mesh.num_elements)
             ff.seconds += time.perf_counter() - start
-            seen = Seen(element, front, torch.from_numpy(eye), frame, F)
+            seen = Seen(element, front, torch.from_numpy(eye).to(self.device), frame, F)
         if self.refiner is None or not gradient:
             return None, seen, None
         start = time.perf_counter()
@@ -252,7 +264,7 @@ class ProgressiveSolver:
             progress: Callable[[ShotReport], None] | None = None) -> SolverState:
         start = time.perf_counter()
         keep_freed_memory()
-        with torch_threads(1 if GLContext.is_software() else torch.get_num_threads()):
+        with torch_threads(1 if GLContext.is_software() else torch.get_num_threads()), deterministic(self.device):
             while self.state.shots < max_shots and self.unshot_fraction > unshot_fraction:
                 shooter = self.shoot()
                 if shooter is None:
@@ -276,10 +288,10 @@ class ProgressiveSolver:
         refined mesh's areas sum to it only to rounding, and the stopping rule divides by it.
         """
         s = self.state
-        return {"mesh": self.mesh.state_dict(), "reflectance": self.reflectance.clone(),
-                "emission": self.emission.clone(), "radiosity": s.radiosity.clone(), "unshot": s.unshot.clone(),
-                "absorbed": s.absorbed.clone(), "escaped": s.escaped.clone(), "shots": s.shots,
-                "emitted_power": self.emitted_power.clone(),
+        saved = {"reflectance": self.reflectance, "emission": self.emission, "radiosity": s.radiosity,
+                 "unshot": s.unshot, "absorbed": s.absorbed, "escaped": s.escaped,
+                 "emitted_power": self.emitted_power}
+        return {"mesh": self.mesh.state_dict(), **{k: v.cpu().clone() for k, v in saved.items()}, "shots": s.shots,
                 "refiner": self.refiner.state_dict() if self.refiner is not None else None,
                 "timings": self.timings()}
 
@@ -290,7 +302,7 @@ class ProgressiveSolver:
         the initial mesh, whose bounds set the hemicube's near and far planes). Raises
         ValueError when the parts do not fit together, e.g. a truncated or edited state.
         """
-        mesh = Mesh.from_state_dict(state["mesh"])
+        mesh = Mesh.from_state_dict(state["mesh"]).to(self.device)
         T = mesh.num_elements
         per_element = {k: state[k] for k in ("reflectance", "emission", "radiosity", "unshot")}
         for key, value in per_element.items():
@@ -302,10 +314,11 @@ class ProgressiveSolver:
         if (state["refiner"] is None) != (self.refiner is None):
             raise ValueError("the state was saved with refinement " + ("off" if state["refiner"] is None else "on"))
         self.mesh, self.areas = mesh, mesh.areas
+        per_element = {k: v.to(self.device) for k, v in per_element.items()}
         self.reflectance, self.emission = per_element["reflectance"], per_element["emission"]
         self.state = SolverState(per_element["radiosity"], per_element["unshot"], int(state["shots"]),
-                                 state["absorbed"].to(torch.float64), state["escaped"].to(torch.float64))
-        self.emitted_power = state["emitted_power"].to(torch.float64)
+                                 state["absorbed"], state["escaped"])
+        self.emitted_power = state["emitted_power"].to(torch.float64).to(self.device)
         if self.refiner is not None:
             self.refiner.load_state_dict(state["refiner"])
         self.form_factors.set_geometry(mesh)

@@ -56,8 +56,8 @@ def _merged_index(index: tuple[torch.Tensor, torch.Tensor], keys: torch.Tensor,
     (no key is in it yet: an edge is split once)."""
     old_keys, old_mid = index
     keys, order = torch.sort(keys)
-    at = torch.searchsorted(old_keys, keys) + torch.arange(len(keys))  # positions in the merged list
-    is_new = torch.zeros(len(old_keys) + len(keys), dtype=torch.bool)
+    at = torch.searchsorted(old_keys, keys) + torch.arange(len(keys), device=keys.device)  # in the merged list
+    is_new = torch.zeros(len(old_keys) + len(keys), dtype=torch.bool, device=keys.device)
     is_new[at] = True
     merged_keys, merged_mid = torch.empty_like(is_new, dtype=torch.int64), torch.empty_like(is_new, dtype=torch.int64)
     merged_keys[at], merged_mid[at] = keys, midpoints[order]
@@ -91,7 +91,7 @@ def _split_pattern1(mesh: Mesh, chosen: torch.Tensor) -> tuple[torch.Tensor, tor
     tri = mesh.triangles[chosen]  # (n, 3)
     n = len(tri)
     new_vertices = mesh.vertices[tri].mean(dim=1)
-    c = len(mesh.vertices) + torch.arange(n, dtype=torch.int64)
+    c = len(mesh.vertices) + torch.arange(n, dtype=torch.int64, device=tri.device)
     v0, v1, v2 = tri.unbind(dim=1)
     # Each child keeps one parent edge and replaces the opposite corner by the centroid,
     # so it is wound like the parent.
@@ -101,7 +101,7 @@ def _split_pattern1(mesh: Mesh, chosen: torch.Tensor) -> tuple[torch.Tensor, tor
         torch.stack([v2, v0, c], dim=1),
     ], dim=1).reshape(-1, 3)
     # The centroid lies on no edge: it can never be a T-vertex.
-    new_parents = torch.full((n, 2), -1, dtype=torch.int64)
+    new_parents = torch.full((n, 2), -1, dtype=torch.int64, device=tri.device)
     return new_vertices, new_parents, children
 
 
@@ -127,7 +127,7 @@ def _split_pattern2(mesh: Mesh, chosen: torch.Tensor) -> tuple[torch.Tensor, tor
     existing = midpoint_lookup(mesh)(unique_lo, unique_hi)
     missing = existing < 0
     num_new = int(missing.sum())
-    new_index = num_vertices + torch.arange(num_new, dtype=torch.int64)
+    new_index = num_vertices + torch.arange(num_new, dtype=torch.int64, device=tri.device)
     mid_of_unique = existing.clone()
     mid_of_unique[missing] = new_index
     a, b = unique_lo[missing], unique_hi[missing]
@@ -169,7 +169,7 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
     """
     if pattern not in PATTERNS:
         raise ValueError(f"unknown split pattern {pattern!r}; expected one of {', '.join(PATTERNS)}")
-    selected = torch.as_tensor(selected, dtype=torch.bool).reshape(-1)
+    selected = torch.as_tensor(selected, dtype=torch.bool, device=mesh.triangles.device).reshape(-1)
     if len(selected) != mesh.num_elements:
         raise ValueError(f"need one flag per element ({mesh.num_elements}), got {len(selected)}")
 
@@ -216,8 +216,8 @@ def unbalanced(mesh: Mesh, near: torch.Tensor | None = None) -> torch.Tensor:
             (after a split, the vertices of the split triangles: a new violation has one).
     """
     find = midpoint_lookup(mesh)
-    out = torch.zeros(mesh.num_elements, dtype=torch.bool)
-    candidates = torch.arange(mesh.num_elements) if near is None else \
+    out = torch.zeros(mesh.num_elements, dtype=torch.bool, device=mesh.triangles.device)
+    candidates = torch.arange(mesh.num_elements, device=out.device) if near is None else \
         torch.nonzero(near[mesh.triangles].any(dim=1)).reshape(-1)
     triangles = mesh.triangles[candidates]
     a = triangles.reshape(-1)
