@@ -61,7 +61,7 @@ class Mesh:
         return len(self.triangles)
 
     # Meshes are never modified in place (splitting returns a new one), so the derived
-    # geometry below is computed once per mesh.
+    # geometry below is computed once per mesh (or handed over by ``inherit_geometry``).
     @cached_property
     def corners(self) -> torch.Tensor:
         """(T, 3, 3) the three vertex positions of every triangle."""
@@ -70,13 +70,11 @@ class Mesh:
     @cached_property
     def centroids(self) -> torch.Tensor:
         """(T, 3)"""
-        v, t = self.vertices, self.triangles
-        return (v[t[:, 0]] + v[t[:, 1]] + v[t[:, 2]]) / 3.0  # mean(dim=1) over (T, 3, 3) is several times slower
+        return _centroids(self.vertices, self.triangles)
 
     @cached_property
     def _cross(self) -> torch.Tensor:
-        c = self.corners
-        return torch.linalg.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+        return _cross(self.corners)
 
     @cached_property
     def areas(self) -> torch.Tensor:
@@ -86,8 +84,32 @@ class Mesh:
     @cached_property
     def normals(self) -> torch.Tensor:
         """(T, 3) unit normals."""
-        x = self._cross
-        return x / x.norm(dim=1, keepdim=True)
+        return _unit(self._cross)
+
+    def inherit_geometry(self, old: "Mesh", rows: torch.Tensor) -> None:
+        """Take over ``old``'s computed geometry: this mesh has ``old``'s triangles at the same
+        indices except at ``rows`` (replaced ones, and every index past ``old``'s end), and
+        only those rows are computed. Every formula works row by row, so the numbers are
+        the ones a computation of all rows gives.
+
+        Args:
+            old: the mesh this one was made from (its vertices are a prefix of this one's).
+            rows: (K,) int64 indices into this mesh.
+        """
+        if "_cross" not in old.__dict__:
+            return
+        triangles = self.triangles[rows]
+        corners = self.vertices[triangles]
+        cross = _cross(corners)
+        fresh = {"corners": corners, "centroids": _centroids(self.vertices, triangles), "_cross": cross,
+                 "areas": 0.5 * cross.norm(dim=1), "normals": _unit(cross)}
+        for name, values in fresh.items():
+            if name in old.__dict__:
+                before = old.__dict__[name]
+                merged = torch.empty((self.num_elements, *before.shape[1:]), dtype=before.dtype, device=before.device)
+                merged[:len(before)] = before
+                merged[rows] = values
+                self.__dict__[name] = merged
 
     @cached_property
     def plane_ids(self) -> torch.Tensor:
@@ -154,3 +176,17 @@ class Mesh:
             s_off += int(p.surface.max()) + 1 if len(p.surface) else 0
         return Mesh(torch.cat(vertices), torch.cat(triangles), torch.cat(surface), torch.cat(material), names,
                     torch.cat(level), torch.cat(parents))
+
+
+def _centroids(vertices: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
+    v, t = vertices, triangles
+    return (v[t[:, 0]] + v[t[:, 1]] + v[t[:, 2]]) / 3.0  # mean(dim=1) over (T, 3, 3) is several times slower
+
+
+def _cross(corners: torch.Tensor) -> torch.Tensor:
+    """(T, 3) (v1 - v0) x (v2 - v0): twice the area, along the normal."""
+    return torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+
+
+def _unit(x: torch.Tensor) -> torch.Tensor:
+    return x / x.norm(dim=1, keepdim=True)

@@ -7,7 +7,7 @@ from .criteria import CRITERIA, ShotContext
 from .display import luminance
 from .mesh import Mesh
 from .scene import RefineOptions
-from .split import split_triangles, unbalanced
+from .split import inherit, split_triangles, unbalanced
 
 CHILDREN = {"pattern1": 3, "pattern2": 4}
 
@@ -84,7 +84,7 @@ class Refiner:
             touched = torch.zeros(len(mesh.vertices), dtype=torch.bool, device=device)
             touched[mesh.triangles[selected].reshape(-1)] = True
             mesh, step = split_triangles(mesh, selected, self.options.pattern)
-            parent = parent[step]
+            parent = inherit(parent, step)
             if self.options.pattern != "pattern2":
                 break
             near = torch.cat([touched, torch.ones(len(mesh.vertices) - len(touched), dtype=torch.bool, device=device)])

@@ -21,6 +21,7 @@ from .mesh import Mesh
 from .refine import Refiner
 from .relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
 from .runtime import deterministic, keep_freed_memory, torch_threads
+from .split import inherit
 
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
@@ -200,11 +201,11 @@ class ProgressiveSolver:
         """
         level = self.mesh.level
         self.mesh, parent = self.refiner.split(self.mesh, selected)
-        self.reflectance, self.emission = self.reflectance[parent], self.emission[parent]
-        self.state.radiosity, self.state.unshot = self.state.radiosity[parent], self.state.unshot[parent]
+        self.reflectance, self.emission = inherit(self.reflectance, parent), inherit(self.emission, parent)
+        self.state.radiosity, self.state.unshot = inherit(self.state.radiosity, parent), inherit(self.state.unshot, parent)
         self.areas = self.mesh.areas
         self.form_factors.set_geometry(self.mesh)
-        return int(torch.nonzero(parent == shooter)[0]), self.mesh.level != level[parent], parent
+        return int(torch.nonzero(parent == shooter)[0]), self.mesh.level != inherit(level, parent), parent
 
     def shoot(self) -> int | None:
         """One shot from the element with the largest unshot power; None when nothing is left.

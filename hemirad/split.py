@@ -160,11 +160,14 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
 
     Returns:
         mesh: the new mesh. Its vertices are the old ones (same indices) followed by the
-            new ones; its triangles are the unsplit triangles in their old order, then the
-            children grouped by parent in the order of the parents. Children inherit
-            surface and material, get ``level + 1`` and keep the parent's winding.
-        parent: (T',) int64, for each new triangle the index of the old triangle it lies in
-            (itself when unsplit). ``values[parent]`` carries per-element quantities such as
+            new ones. Every old triangle keeps its index: an unsplit one is unchanged, a
+            split one's index now holds its first child; the other children follow the old
+            triangles, grouped by parent in the order of the parents. Children inherit
+            surface and material, get ``level + 1`` and keep the parent's winding. Geometry
+            the old mesh had computed is handed over, computed afresh for children only.
+        parent: (T',) int64, for each new triangle the index of the old triangle it lies in:
+            ``parent[:T]`` is ``0, 1, ..., T - 1``. ``values[parent]`` (or, the same and
+            cheaper, ``inherit(values, parent)``) carries per-element quantities such as
             radiosity over: value per unit area is unchanged, so power is conserved.
     """
     if pattern not in PATTERNS:
@@ -174,33 +177,49 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
         raise ValueError(f"need one flag per element ({mesh.num_elements}), got {len(selected)}")
 
     chosen = torch.nonzero(selected).reshape(-1)
-    kept = torch.nonzero(~selected).reshape(-1)
-    if pattern == "pattern1":
-        new_vertices, new_parents, children = _split_pattern1(mesh, chosen)
-        per_parent = 3
-    else:
-        new_vertices, new_parents, children = _split_pattern2(mesh, chosen)
-        per_parent = 4
+    split = _split_pattern1 if pattern == "pattern1" else _split_pattern2
+    new_vertices, new_parents, children = split(mesh, chosen)
+    per_parent = 3 if pattern == "pattern1" else 4
+    children = children.reshape(len(chosen), per_parent, 3)
 
-    parent = torch.cat([kept, chosen.repeat_interleave(per_parent)])
-    level = torch.cat([mesh.level[kept], (mesh.level[chosen] + 1).repeat_interleave(per_parent)])
+    T = mesh.num_elements
+    parent = torch.cat([torch.arange(T, device=chosen.device), chosen.repeat_interleave(per_parent - 1)])
+    triangles = torch.cat([mesh.triangles, children[:, 1:].reshape(-1, 3)])
+    triangles[chosen] = children[:, 0]
+    level = inherit(mesh.level, parent)
+    level[chosen] += 1
+    level[T:] += 1
     out = Mesh(
         vertices=torch.cat([mesh.vertices, new_vertices.to(mesh.vertices.dtype)]),
-        triangles=torch.cat([mesh.triangles[kept], children]),
-        surface=mesh.surface[parent],
-        material=mesh.material[parent],
+        triangles=triangles,
+        surface=inherit(mesh.surface, parent),
+        material=inherit(mesh.material, parent),
         surface_names=list(mesh.surface_names),
         level=level,
         edge_parents=torch.cat([mesh.edge_parents, new_parents]),
     )
+    out.inherit_geometry(mesh, torch.cat([chosen, torch.arange(T, len(parent), device=chosen.device)]))
     if "plane_ids" in mesh.__dict__:  # children lie in their parent's plane
-        out.__dict__["plane_ids"] = mesh.plane_ids[parent]
+        out.__dict__["plane_ids"] = inherit(mesh.plane_ids, parent)
     if "_midpoint_index" in mesh.__dict__:
         new_midpoints = torch.nonzero(new_parents[:, 0] >= 0).reshape(-1)
         out.__dict__["_midpoint_index"] = _merged_index(
             mesh.__dict__["_midpoint_index"], _edge_keys(new_parents[new_midpoints, 0], new_parents[new_midpoints, 1]),
             len(mesh.vertices) + new_midpoints)
     return out, parent
+
+
+def inherit(values: torch.Tensor, parent: torch.Tensor) -> torch.Tensor:
+    """``values[parent]`` for a ``parent`` map of ``split_triangles`` (or a chain of them),
+    whose first ``len(values)`` entries are the identity: a copy and a gather of the new
+    rows only.
+
+    Args:
+        values: (T, ...) per old element; parent: (T',) with ``parent[:T] == arange(T)``.
+    Returns:
+        (T', ...) a new tensor.
+    """
+    return torch.cat([values, values[parent[len(values):]]])
 
 
 def unbalanced(mesh: Mesh, near: torch.Tensor | None = None) -> torch.Tensor:

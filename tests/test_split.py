@@ -93,12 +93,14 @@ def test_parent_carries_values_and_power(pattern):
     selected = torch.rand(mesh.num_elements, generator=g) < 0.4
     new, parent = split_triangles(mesh, selected, pattern)
 
+    T = mesh.num_elements
     unsplit = torch.nonzero(~selected).reshape(-1)
     per = 3 if pattern == "pattern1" else 4
-    # Unsplit elements first in their old order, then children grouped by parent.
-    assert torch.equal(parent[: len(unsplit)], unsplit)
-    assert torch.equal(parent[len(unsplit):], torch.nonzero(selected).reshape(-1).repeat_interleave(per))
-    assert torch.equal(new.triangles[: len(unsplit)], mesh.triangles[unsplit])
+    # Every old element keeps its index (a split one's holds its first child); the other
+    # children follow, grouped by parent.
+    assert torch.equal(parent[:T], torch.arange(T))
+    assert torch.equal(parent[T:], torch.nonzero(selected).reshape(-1).repeat_interleave(per - 1))
+    assert torch.equal(new.triangles[unsplit], mesh.triangles[unsplit])
     assert torch.equal(new.level, mesh.level[parent] + selected[parent].long())
 
     power = (values * mesh.areas[:, None]).sum(dim=0)
@@ -123,8 +125,8 @@ def test_pattern2_reuses_midpoint_across_calls():
     once, _ = split_triangles(square, torch.tensor([True, True]), "pattern2")
     first, parent = split_triangles(square, torch.tensor([True, False]), "pattern2")
     assert len(first.vertices) == 4 + 3
-    # The unsplit second triangle is now first; split it too.
-    assert parent.tolist()[0] == 1
+    # The unsplit second triangle keeps its index; split it too.
+    assert parent.tolist()[:2] == [0, 1] and first.level.tolist()[1] == 0
     second, _ = split_triangles(first, first.level == 0, "pattern2")
     # Only the two outer edges of the second triangle get new midpoints.
     assert len(second.vertices) == len(once.vertices) == 9
@@ -212,3 +214,21 @@ def test_midpoint_index_carried_through_splits_is_the_one_built_afresh(pattern):
     built = _midpoint_index(fresh)
     assert (len(built[0]) > 0) == (pattern == "pattern2")
     assert torch.equal(carried[0], built[0]) and torch.equal(carried[1], built[1])
+
+
+@pytest.mark.parametrize("pattern", ["pattern1", "pattern2"])
+def test_geometry_handed_over_by_a_split_is_the_one_computed_afresh(pattern):
+    from hemirad.split import inherit
+
+    g = torch.Generator().manual_seed(7)
+    mesh = _jittered_grid(seed=1)
+    values = torch.rand(mesh.num_elements, 3, generator=g, dtype=torch.float64)
+    for _ in range(3):
+        mesh.normals, mesh.areas, mesh.centroids  # computed, so that the split hands them over
+        mesh, parent = split_triangles(mesh, torch.rand(mesh.num_elements, generator=g) < 0.3, pattern)
+        values_before, values = values, inherit(values, parent)
+        assert torch.equal(values, values_before[parent])
+    handed = {k: mesh.__dict__[k] for k in ("corners", "centroids", "areas", "normals")}
+    fresh = Mesh(mesh.vertices, mesh.triangles, mesh.surface, mesh.material)
+    for name, value in handed.items():
+        assert torch.equal(value, getattr(fresh, name)), name
