@@ -1,24 +1,29 @@
 """Timings of the progressive solver: one Fig. 6(c)-class adaptive solve, and seconds per shot
 against element count. For reading, never for asserting.
 
-    python scripts/bench.py [--quick] [--out figures/bench.md]
+    python scripts/bench.py [--quick] [--device cpu|cuda|auto] [--out figures/bench.md]
 
 1. The adaptive solve: the floating-rectangle room (``floating``), pattern 2, 100 shots,
    hemicube 256, the gradient criterion at ``--threshold`` (chosen so that the mesh ends near
    the paper's 94,791 elements). Prints wall time, seconds per shot split into raster
    (culling and drawing), read-back, form factors + AD (decoding, hit points, the
    forward-mode Jacobian), refinement (criterion, selection, splitting, re-upload) and
-   update, and the peak resident memory.
+   update, and the peak resident memory; then where the time goes inside (the same solve
+   again under cProfile: the functions with the most time of their own), so that the
+   next bottleneck is visible.
 2. The scaling table: the same room meshed to about 1k, 10k, 100k and 1M elements, no
    refinement, ``--shots`` shots after a warm-up shot, seconds per shot by phase.
 
-Both tables, with the machine described, go to ``--out`` (Markdown). ``--quick`` runs a
-small version of each (a smoke test; its numbers are not the benchmark's).
+Both tables, with the machine described, go to ``--out`` (Markdown; ``figures/bench.md`` on
+the CPU, ``figures/bench_cuda.md`` with ``--device cuda``). ``--quick`` runs a small version
+of each (a smoke test; its numbers are not the benchmark's).
 """
 from __future__ import annotations
 
 import argparse
+import cProfile
 import os
+import pstats
 import platform
 import resource
 import time
@@ -27,6 +32,7 @@ from pathlib import Path
 import torch
 
 import hemirad
+from hemirad.device import select_device
 from hemirad.gl import GLContext
 from hemirad.meshing import build_mesh
 from hemirad.solver import ProgressiveSolver
@@ -37,7 +43,7 @@ PHASE_NAMES = {"raster": "raster", "readback": "read-back", "form_factors": "for
                "gradient": "form factors + AD (hit points, Jacobian)", "refine": "refinement", "update": "update"}
 
 
-def machine() -> str:
+def machine(device: torch.device) -> str:
     cpu = platform.processor() or platform.machine()
     try:
         names = [line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")]
@@ -45,19 +51,31 @@ def machine() -> str:
     except OSError:
         pass
     memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    if device.type == "cuda":
+        where = f"CUDA on {torch.cuda.get_device_name(device)}"
+    elif GLContext.is_software():
+        where = "CPU, one intra-op thread during solves beside a software renderer"
+    else:
+        where = f"CPU, {torch.get_num_threads()} intra-op threads"
     return (f"{cpu}, {os.cpu_count()} cores, {memory:.0f} GiB; {platform.system()} {platform.release()}; "
-            f"GL renderer {GLContext.renderer_name()}; torch {torch.__version__} (CPU, one intra-op thread "
-            f"during solves beside a software renderer); Python {platform.python_version()}")
+            f"GL renderer {GLContext.renderer_name()}; torch {torch.__version__} ({where}); "
+            f"Python {platform.python_version()}")
 
 
 def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def adaptive(threshold: float, shots: int, resolution: int) -> tuple[dict, list[str]]:
+def adaptive_scene(threshold: float, shots: int, resolution: int, device: torch.device):
     scene = hemirad.load_scene("floating")
     scene.solver.max_shots, scene.solver.unshot_fraction, scene.solver.resolution = shots, 0.0, resolution
+    scene.solver.device = str(device)
     scene.refine.pattern, scene.refine.criterion, scene.refine.threshold = "pattern2", "gradient", threshold
+    return scene
+
+
+def adaptive(threshold: float, shots: int, resolution: int, device: torch.device) -> tuple[dict, list[str]]:
+    scene = adaptive_scene(threshold, shots, resolution, device)
     start = time.perf_counter()
     result = hemirad.solve(scene)
     wall = time.perf_counter() - start
@@ -78,11 +96,31 @@ def adaptive(threshold: float, shots: int, resolution: int) -> tuple[dict, list[
     return run, lines
 
 
-def per_shot(scene, shots: int, resolution: int) -> dict:
+def profile(threshold: float, shots: int, resolution: int, device: torch.device, top: int = 15) -> list[str]:
+    """The adaptive solve once more under cProfile: the functions with the most time of
+    their own (torch operators by name, hemirad functions by file and line)."""
+    scene = adaptive_scene(threshold, shots, resolution, device)
+    profiler = cProfile.Profile()
+    profiler.enable()
+    hemirad.solve(scene)
+    profiler.disable()
+    stats = pstats.Stats(profiler).stats  # {(file, line, name): (calls, _, own, cumulative, _)}
+    total = sum(own for _, _, own, _, _ in stats.values())
+    rows = sorted(stats.items(), key=lambda item: -item[1][2])[:top]
+    lines = [f"Where the time goes (the same solve under cProfile, which slows it to {total:.1f} s; "
+             f"the {top} functions with the most time of their own):", "",
+             "| function | calls | own seconds | share |", "|---|---:|---:|---:|"]
+    for (file, line, name), (calls, _, own, _, _) in rows:
+        where = name if file == "~" else f"{Path(file).name}:{line} {name}"
+        lines.append(f"| `{where}` | {calls} | {own:.2f} | {100 * own / total:.1f}% |")
+    return lines
+
+
+def per_shot(scene, shots: int, resolution: int, device: torch.device) -> dict:
     mesh = build_mesh(scene)
     reflectance = scene.reflectance_table()[mesh.material]
     emission = scene.emission_table()[mesh.material]
-    solver = ProgressiveSolver(mesh, reflectance, emission, resolution)
+    solver = ProgressiveSolver(mesh, reflectance, emission, resolution, device=device)
     try:
         solver.run(1, unshot_fraction=0.0)  # warm-up: shader compilation and first allocations
         warm = solver.timings()
@@ -95,7 +133,7 @@ def per_shot(scene, shots: int, resolution: int) -> dict:
     return {"elements": mesh.num_elements, "per_shot": wall / shots, **phases}
 
 
-def scaling(targets: list[int], shots: int, resolution: int) -> tuple[list[dict], list[str]]:
+def scaling(targets: list[int], shots: int, resolution: int, device: torch.device) -> tuple[list[dict], list[str]]:
     scene = hemirad.load_scene("floating")
     base = build_mesh(scene).num_elements
     lines = [f"Seconds per shot without refinement (`floating` meshed finer, hemicube {resolution}, "
@@ -104,7 +142,7 @@ def scaling(targets: list[int], shots: int, resolution: int) -> tuple[list[dict]
              "|---:|---:|---:|---:|---:|---:|---:|"]
     rows = []
     for target in targets:
-        r = per_shot(scene.with_element_sizes_scaled((base / target) ** 0.5), shots, resolution)
+        r = per_shot(scene.with_element_sizes_scaled((base / target) ** 0.5), shots, resolution, device)
         rows.append(r)
         ms = {k: 1e3 * r[k] for k in ("per_shot", "raster", "readback", "form_factors", "update")}
         lines.append(f"| {r['elements']} | {ms['per_shot']:.1f} | {ms['raster']:.1f} | {ms['readback']:.2f} | "
@@ -119,20 +157,30 @@ def main() -> None:
                         help="the adaptive solve's gradient threshold (relative to the lamp)")
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--shots", type=int, default=20, help="shots per row of the scaling table")
-    parser.add_argument("--out", type=Path, default=ROOT / "figures" / "bench.md")
+    parser.add_argument("--device", default="cpu", help="cpu (the default), cuda, cuda:N or auto")
+    parser.add_argument("--out", type=Path, help="default figures/bench.md (figures/bench_cuda.md on CUDA)")
+    parser.add_argument("--no-profile", dest="profile", action="store_false", help="skip the profiled solve")
     parser.add_argument("--quick", action="store_true", help="a smoke test: small sizes, few shots")
     args = parser.parse_args()
+    device = select_device(args.device)
+    GLContext.get(gpu=device.type == "cuda")
+    if args.out is None:
+        args.out = ROOT / "figures" / ("bench_cuda.md" if device.type == "cuda" else "bench.md")
     if args.quick:
-        args.out = Path("bench_quick.md") if args.out == ROOT / "figures" / "bench.md" else args.out
-        adaptive_args, targets, shots = (1e-3, 10, 64), [1000, 10000], 3
+        args.out = Path("bench_quick.md")
+        adaptive_args, targets, shots = (1e-3, 10, 64, device), [1000, 10000], 3
     else:
-        adaptive_args, targets, shots = (args.threshold, 100, args.resolution), [1000, 10000, 100000, 1000000], args.shots
-    print(machine(), flush=True)
+        adaptive_args = (args.threshold, 100, args.resolution, device)
+        targets, shots = [1000, 10000, 100000, 1000000], args.shots
+    print(machine(device), flush=True)
     run, adaptive_lines = adaptive(*adaptive_args)
     print("\n".join(adaptive_lines), "\n", flush=True)
-    rows, scaling_lines = scaling(targets, shots, adaptive_args[2])
-    text = ["# Benchmark", "", f"Made by `python scripts/bench.py` on: {machine()}.", "",
-            *adaptive_lines, "", *scaling_lines, ""]
+    profile_lines = profile(*adaptive_args) if args.profile else []
+    print("\n".join(profile_lines), "\n", flush=True)
+    rows, scaling_lines = scaling(targets, shots, adaptive_args[2], device)
+    command = "python scripts/bench.py" + (f" --device {args.device}" if device.type == "cuda" else "")
+    text = ["# Benchmark", "", f"Made by `{command}` on: {machine(device)}.", "",
+            *adaptive_lines, "", *profile_lines, "", *scaling_lines, ""]
     args.out.write_text("\n".join(text))
     print(f"\nwrote {args.out}")
 
