@@ -167,19 +167,26 @@ class Hemicube:
                                           index_buffer=self._ibo, index_element_size=4)
         self._vertices = np.zeros((0, 3))
         self._triangles = np.zeros((0, 3), dtype=np.uint32)
+        self._pending = None
         self.num_triangles = self.drawn_triangles = 0
         self.raster_seconds = self.readback_seconds = 0.0
 
     def set_geometry(self, vertices: torch.Tensor, triangles: torch.Tensor) -> None:
-        """Upload the mesh to draw; item ids are the triangles' row indices.
+        """Set the mesh to draw; item ids are the triangles' row indices. It is uploaded by
+        the next ``render``: a refining shot replaces the mesh several times between renders.
 
         Args:
             vertices: (V, 3) positions.
             triangles: (T, 3) vertex indices, counter-clockwise seen from the front.
         """
-        self._vertices = vertices.detach().cpu().numpy().astype(np.float64, copy=False)
-        self._triangles = triangles.detach().cpu().numpy().astype(np.uint32)
-        self.num_triangles = len(self._triangles)
+        self._pending = (vertices.detach(), triangles.detach())
+        self.num_triangles = len(triangles)
+
+    def _upload(self) -> None:
+        vertices, triangles = self._pending
+        self._pending = None
+        self._vertices = vertices.cpu().numpy().astype(np.float64, copy=False)
+        self._triangles = triangles.cpu().numpy().astype(np.uint32)
         _write(self._vbo, self._vertices.astype(np.float32))
         if not self.cull:  # one list, drawn whole by every face
             _write(self._ibo, self._triangles)
@@ -213,6 +220,8 @@ class Hemicube:
             the next call overwrites.
         """
         start = time.perf_counter()
+        if self._pending is not None:
+            self._upload()
         eye = np.asarray(eye, dtype=np.float64)
         ids, ranges = self._draw_lists(eye, frame, near)
         ctx = self.ctx

@@ -7,7 +7,7 @@ from .criteria import CRITERIA, ShotContext
 from .display import luminance
 from .mesh import Mesh
 from .scene import RefineOptions
-from .split import inherit, split_triangles, unbalanced
+from .split import hand_over_geometry, inherit, split_triangles, unbalanced
 
 CHILDREN = {"pattern1": 3, "pattern2": 4}
 
@@ -79,11 +79,12 @@ class Refiner:
         """
         device = mesh.triangles.device
         parent = torch.arange(mesh.num_elements, device=device)
+        before = mesh
         while bool(selected.any()):
             self.splits += int(selected.sum())
             touched = torch.zeros(len(mesh.vertices), dtype=torch.bool, device=device)
             touched[mesh.triangles[selected].reshape(-1)] = True
-            mesh, step = split_triangles(mesh, selected, self.options.pattern)
+            mesh, step = split_triangles(mesh, selected, self.options.pattern, geometry=False)
             parent = inherit(parent, step)
             if self.options.pattern != "pattern2":
                 break
@@ -94,4 +95,6 @@ class Refiner:
                 keep = torch.nonzero(selected).reshape(-1)[:max(room, 0)]
                 selected = torch.zeros_like(selected)
                 selected[keep] = True
+        if mesh is not before:
+            hand_over_geometry(before, mesh, parent)
         return mesh, parent

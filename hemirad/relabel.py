@@ -22,14 +22,13 @@ class Descent:
     """Which new elements lie in which old ones after a split (``descendants``).
 
     Attributes:
-        parent: (T',) the old element every new one lies in.
-        kept: (T,) the new index of each unsplit old element (junk for split ones).
+        parent: (T',) the old element every new one lies in; ``parent[:T]`` is the identity
+            (``split.split_triangles``: every old element keeps its index).
         ordered: (K,) the new elements that lie in split old ones, grouped by parent.
         start, count: (T,) each old element's run in ``ordered``; count 1: not split.
     """
 
     parent: torch.Tensor
-    kept: torch.Tensor
     ordered: torch.Tensor
     start: torch.Tensor
     count: torch.Tensor
@@ -39,16 +38,14 @@ def descendants(parent: torch.Tensor) -> Descent:
     """Map old elements to the new ones that lie in them.
 
     Args:
-        parent: (T',) for every new element the old one it lies in (``Refiner.split``);
-            every old element has at least one.
+        parent: (T',) for every new element the old one it lies in (``Refiner.split``), the
+            identity on its first T entries.
     """
     count = torch.bincount(parent)
-    kept = torch.zeros(len(count), dtype=torch.int64, device=parent.device).scatter_(
-        0, parent, torch.arange(len(parent), device=parent.device))
     in_split = (count[parent] > 1).nonzero().reshape(-1)  # few: sort only these
     ordered = in_split[torch.argsort(parent[in_split], stable=True)]
     split_count = torch.where(count > 1, count, 0)
-    return Descent(parent, kept, ordered, torch.cumsum(split_count, 0) - split_count, count)
+    return Descent(parent, ordered, torch.cumsum(split_count, 0) - split_count, count)
 
 
 def split_pixels_of(element: torch.Tensor, descent: Descent) -> torch.Tensor:
@@ -69,7 +66,7 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
     Returns:
         (P,) new element per pixel, -1 for none.
     """
-    out = torch.where(element >= 0, descent.kept[element.clamp(min=0)], element)
+    out = element.clone()  # an unsplit element keeps its index
     if len(split_pixels) == 0:
         return out
     # Every (pixel, descendant of its old element) pair, then the descendant that holds the

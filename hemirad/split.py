@@ -148,7 +148,8 @@ def _split_pattern2(mesh: Mesh, chosen: torch.Tensor) -> tuple[torch.Tensor, tor
     return new_vertices, new_parents, children
 
 
-def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[Mesh, torch.Tensor]:
+def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str,
+                    geometry: bool = True) -> tuple[Mesh, torch.Tensor]:
     """Split the selected triangles with one of the paper's two patterns.
 
     Args:
@@ -157,6 +158,8 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
         pattern: ``"pattern1"`` (centroid, 1 -> 3 children (v0 v1 c), (v1 v2 c), (v2 v0 c))
             or ``"pattern2"`` (edge midpoints, 1 -> 4 children (v0 m01 m20),
             (m01 v1 m12), (m20 m12 v2), (m01 m12 m20)).
+        geometry: hand over the geometry and plane ids ``mesh`` has computed (False when
+            more splits follow at once: ``hand_over_geometry`` then does it once).
 
     Returns:
         mesh: the new mesh. Its vertices are the old ones (same indices) followed by the
@@ -198,15 +201,25 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
         level=level,
         edge_parents=torch.cat([mesh.edge_parents, new_parents]),
     )
-    out.inherit_geometry(mesh, torch.cat([chosen, torch.arange(T, len(parent), device=chosen.device)]))
-    if "plane_ids" in mesh.__dict__:  # children lie in their parent's plane
-        out.__dict__["plane_ids"] = inherit(mesh.plane_ids, parent)
+    if geometry:
+        hand_over_geometry(mesh, out, parent)
     if "_midpoint_index" in mesh.__dict__:
         new_midpoints = torch.nonzero(new_parents[:, 0] >= 0).reshape(-1)
         out.__dict__["_midpoint_index"] = _merged_index(
             mesh.__dict__["_midpoint_index"], _edge_keys(new_parents[new_midpoints, 0], new_parents[new_midpoints, 1]),
             len(mesh.vertices) + new_midpoints)
     return out, parent
+
+
+def hand_over_geometry(old: Mesh, new: Mesh, parent: torch.Tensor) -> None:
+    """Give ``new``, made from ``old`` by one or more splits (``parent`` as they return it),
+    the geometry and plane ids ``old`` has computed, computing only the triangles that
+    changed: the split ones (their level rose) and the appended ones."""
+    T = old.num_elements
+    changed = torch.nonzero(new.level[:T] != old.level).reshape(-1)
+    new.inherit_geometry(old, torch.cat([changed, torch.arange(T, len(parent), device=parent.device)]))
+    if "plane_ids" in old.__dict__:  # children lie in their parent's plane
+        new.__dict__["plane_ids"] = inherit(old.plane_ids, parent)
 
 
 def inherit(values: torch.Tensor, parent: torch.Tensor) -> torch.Tensor:
