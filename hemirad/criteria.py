@@ -55,6 +55,29 @@ def gradient_score(ctx: ShotContext) -> torch.Tensor:
     return (grad @ offsets.T).abs().amax(dim=1)
 
 
+def gradient_score_bound(ctx: ShotContext, rows: torch.Tensor, distance: torch.Tensor) -> torch.Tensor:
+    """(R,) an upper bound of the interior (frozen-visibility) part of ``gradient_score`` for
+    the receivers ``rows``, from F_sj alone: where it is under the threshold, that part's
+    Jacobian need not be computed.
+
+    Each pixel's kernel K_q = w_q A B / (A0 B0) (r0 / r)^4 has |dK_q/dc| <= K_q (1/A + 1/B + 4/r),
+    with A = n_s . (y - c) its height above the shooter's plane, B = n_j . (c - y) the eye's
+    height above the receiver's plane and r = |y - c| >= B. Over a receiver B is one number
+    and A is at least its smallest corner's height A_min, so |dF_sj/dc| <= F_sj (1/A_min + 5/B);
+    a receiver reaching below the shooter's plane (A_min <= 0) gets no bound (infinity).
+
+    Args:
+        rows: (R,) receivers; distance: (T,) n_j . (p_j - eye) (``ShotView.distance``).
+    """
+    corners = ctx.mesh.corners[rows]  # (R, 3, 3)
+    lowest = ((corners - ctx.eye) @ ctx.normal).amin(dim=1)  # (R,) A_min
+    height = distance[rows].abs()  # B
+    rate = torch.where(lowest > 0, 1.0 / lowest.clamp(min=1e-300) + 5.0 / height, torch.inf)
+    shooter = ctx.mesh.corners[ctx.shooter]
+    reach = (shooter - shooter.mean(0)).norm(dim=1).max()  # max_k |P_k - G|
+    return ctx.luminance_per_form_factor[rows] * ctx.form_factors[rows] * rate * reach
+
+
 def receiver_score(ctx: ShotContext) -> torch.Tensor:
     """The first-order variation of received radiosity across each receiver itself.
 
@@ -104,10 +127,13 @@ class Criterion:
     score: Callable[[ShotContext], torch.Tensor]
     jacobian: str | None  # "full", "interior" or None: which form-factor gradient it reads
     radiosity_units: bool = True  # False: the threshold is a length
+    # (ctx without its jacobian, rows, ShotView.distance) -> (rows,) an upper bound of the
+    # score's interior part, for leaving receivers out of the interior Jacobian; None: none
+    interior_bound: Callable[[ShotContext, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
 
 
 CRITERIA: dict[str, Criterion] = {
-    "gradient": Criterion(gradient_score, "full"),
+    "gradient": Criterion(gradient_score, "full", interior_bound=gradient_score_bound),
     "receiver": Criterion(receiver_score, "interior"),
     "partial_visibility": Criterion(partial_visibility_score, None),
     "neighbor_difference": Criterion(neighbor_difference_score, None),

@@ -407,7 +407,8 @@ def shadow_edge_form_factors(c: torch.Tensor, view: ShotView, pairs: OcclusionPa
 def form_factor_gradient(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
                          interior: bool = True, shadow_edges: bool = True,
                          wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None,
-                         pixels: torch.Tensor | None = None) -> torch.Tensor:
+                         pixels: torch.Tensor | None = None,
+                         interior_wanted: torch.Tensor | None = None) -> torch.Tensor:
     """dF_sj/dc for every element, by forward-mode autograd: (T, 3).
 
     Args:
@@ -419,10 +420,18 @@ def form_factor_gradient(view: ShotView, normals: torch.Tensor, points: torch.Te
             ``wanted`` in these.
         plane_ids: (T,) ``Mesh.plane_ids``, optional: speeds up finding shadow edges.
         pixels: (N,) optional, with ``wanted``: the only pixels that may see a wanted element.
+        interior_wanted: (T,) bool, optional, within ``wanted``: the only elements whose
+            interior term is needed, besides those with shadow-edge pairs (which get both).
+            The rows of the others then hold their shadow-edge term alone.
     """
     T = len(normals)
-    patches = ReceiverPatches.from_view(view, wanted, pixels)
     pairs = occlusion_pairs(view, normals, points, wanted, plane_ids, pixels) if shadow_edges else None
+    if interior_wanted is not None:
+        if pairs is not None:
+            interior_wanted = interior_wanted.clone()
+            interior_wanted[pairs.far_element] = True
+        wanted = interior_wanted if wanted is None else wanted & interior_wanted
+    patches = ReceiverPatches.from_view(view, wanted, pixels)
 
     def F(c):
         total = torch.zeros(T, dtype=torch.float64, device=view.eye.device)

@@ -53,6 +53,23 @@ class Refiner:
         out[shooter] = False
         return out
 
+    def could_exceed(self, ctx: ShotContext, distance: torch.Tensor) -> torch.Tensor | None:
+        """(T,) bool: the pass's candidates whose score's interior part may pass the threshold
+        (the criterion's ``interior_bound``), the only ones whose interior Jacobian is needed;
+        None when the criterion has no bound (all candidates then need it).
+
+        Args:
+            ctx: the pass, before its Jacobian; distance: (T,) ``ShotView.distance``.
+        """
+        if self.criterion.interior_bound is None:
+            return None
+        candidates = self.splittable(ctx.mesh, ctx.shooter) if ctx.candidates is None else ctx.candidates
+        rows = torch.nonzero(candidates).reshape(-1)
+        out = torch.zeros_like(candidates)
+        # with room for rounding: an element at the threshold keeps its exact score
+        out[rows] = self.criterion.interior_bound(ctx, rows, distance) * (1.0 + 1e-9) > self.threshold
+        return out
+
     def select(self, ctx: ShotContext) -> torch.Tensor:
         """(T,) bool: receivers over the threshold among the pass's candidates (by default
         every ``splittable`` one), largest first when the element budget binds (it is never

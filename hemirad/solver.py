@@ -128,6 +128,9 @@ class ProgressiveSolver:
         relabel: between the passes of a refining shot, carry the hemicube's item atlas over
             to the children (``relabel.py``) instead of rendering again; the shot is still
             committed with a real render of the final mesh.
+        bound: leave out of the interior Jacobian the receivers whose criterion bounds that
+            part of their score under the threshold (``Refiner.could_exceed``): the same
+            splits, with less forward-mode work.
         device: where the tensors live and the torch work runs (``device.select_device``);
             on CUDA the hemicubes are drawn by the GPU's OpenGL context. The inputs may be
             anywhere; ``state_dict`` is always on the CPU.
@@ -136,7 +139,7 @@ class ProgressiveSolver:
     """
 
     def __init__(self, mesh: Mesh, reflectance: torch.Tensor, emission: torch.Tensor, resolution: int,
-                 refiner: Refiner | None = None, cull: bool = True, relabel: bool = True,
+                 refiner: Refiner | None = None, cull: bool = True, relabel: bool = True, bound: bool = True,
                  device: torch.device | str = "cpu"):
         self.device = torch.device(device)
         mesh = mesh.to(self.device)
@@ -150,6 +153,7 @@ class ProgressiveSolver:
         self.form_factors = HemicubeFormFactors(mesh, resolution, cull, self.device)
         self.refiner = refiner
         self.relabel = relabel
+        self.bound = bound
         self.update_seconds = self.gradient_seconds = self.refine_seconds = 0.0
 
     def close(self) -> None:
@@ -160,37 +164,36 @@ class ProgressiveSolver:
         unshot_power = (self.state.unshot * self.areas[:, None]).sum()
         return float(unshot_power / self.emitted_power.sum())
 
-    def _form_factors(self, shooter: int, candidates: torch.Tensor | None, seen: Seen | None = None,
-                      gradient: bool = True) -> tuple[torch.Tensor | None, "Seen", "ShotView | None"]:
-        """dF_sj/dc when the refiner reads it (else None; zero outside ``candidates``), what
-        the hemicube saw, with F_sj, and its ShotView (None without a refiner).
+    def _render(self, shooter: int) -> "Seen":
+        """What the hemicube of ``shooter`` sees, rendered, with F_sj."""
+        ff = self.form_factors
+        element, front, eye, frame = ff.render(shooter)
+        element, front = element.reshape(-1), front.reshape(-1)
+        start = time.perf_counter()
+        F = element_form_factors(element, front, ff.weights.reshape(-1), self.mesh.num_elements)
+        ff.seconds += time.perf_counter() - start
+        return Seen(element, front, torch.from_numpy(eye).to(self.device), frame, F)
 
-        Args:
-            seen: what a relabelled atlas says the hemicube sees, instead of rendering.
-            gradient: False for the form factors alone.
+    def _gradient(self, seen: "Seen", ctx: ShotContext) -> tuple[torch.Tensor | None, ShotView]:
+        """dF_sj/dc when the criterion reads it (else None), and the pass's ShotView.
+
+        J is computed for the pass's candidates whose score could pass the threshold
+        (``Refiner.could_exceed``); its other rows are zero.
         """
         ff = self.form_factors
-        if seen is None:
-            element, front, eye, frame = ff.render(shooter)
-            element, front = element.reshape(-1), front.reshape(-1)
-            start = time.perf_counter()
-            F = element_form_factors(element, front, ff.weights.reshape(-1), self.mesh.num_elements)
-            ff.seconds += time.perf_counter() - start
-            seen = Seen(element, front, torch.from_numpy(eye).to(self.device), frame, F)
-        if self.refiner is None or not gradient:
-            return None, seen, None
         start = time.perf_counter()
         view = ShotView.from_render(seen.element, seen.front, ff.weights, seen.eye, seen.frame, ff.normals,
                                     ff.centroids)
         wanted = self.refiner.jacobian
-        if wanted is None:
-            return None, seen, view
-        options = self.refiner.options
-        J = form_factor_gradient(view, ff.normals, ff.centroids, interior=options.interior or wanted == "interior",
-                                 shadow_edges=options.shadow_edges and wanted == "full", wanted=candidates,
-                                 plane_ids=self.mesh.plane_ids, pixels=seen.changed)
+        J = None
+        if wanted is not None:
+            options = self.refiner.options
+            J = form_factor_gradient(view, ff.normals, ff.centroids, interior=options.interior or wanted == "interior",
+                                     shadow_edges=options.shadow_edges and wanted == "full", wanted=ctx.candidates,
+                                     plane_ids=self.mesh.plane_ids, pixels=seen.changed,
+                                     interior_wanted=self.refiner.could_exceed(ctx, view.distance) if self.bound else None)
         self.gradient_seconds += time.perf_counter() - start
-        return J, seen, view
+        return J, view
 
     def _split(self, selected: torch.Tensor, shooter: int) -> tuple[int, torch.Tensor, torch.Tensor]:
         """Split the selected elements; children inherit B and dB.
@@ -229,18 +232,19 @@ class ProgressiveSolver:
         candidates = None if self.refiner is None else self.refiner.splittable(self.mesh, shooter)
         relabelled = None  # what the next pass sees, when carried over instead of rendered
         while True:
-            J, seen, view = self._form_factors(shooter, candidates, relabelled)
-            start = time.perf_counter()
+            seen = relabelled or self._render(shooter)
             if self.refiner is None:
                 break
             delta = received_radiosity(seen.form_factors, shot_power, self.reflectance, self.areas)
             ctx = ShotContext(self.mesh, shooter, seen.eye, self.form_factors.normals[shooter], seen.form_factors,
-                              delta, luminance(self.reflectance * shot_power) / self.areas, J, candidates)
+                              delta, luminance(self.reflectance * shot_power) / self.areas, None, candidates)
+            ctx.jacobian, view = self._gradient(seen, ctx)
+            start = time.perf_counter()
             selected = self.refiner.select(ctx)
             if not bool(selected.any()):
                 self.refine_seconds += time.perf_counter() - start
                 if relabelled is not None:  # commit what a real render of the final mesh sees
-                    seen = self._form_factors(shooter, None, gradient=False)[1]
+                    seen = self._render(shooter)
                 break
             old_shooter = shooter
             shooter, new, parent = self._split(selected, shooter)

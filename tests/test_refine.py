@@ -11,7 +11,7 @@ from hemirad.meshing import build_mesh
 from hemirad.refine import Refiner
 from hemirad.solver import ProgressiveSolver
 
-from patches import closed_box
+from patches import closed_box, refined_solve
 
 
 def floating(floor=0.2, resolution=64, shots=40, **refine):
@@ -132,3 +132,39 @@ def test_refined_solve_is_deterministic():
     runs = [hemirad.solve(floating(shots=15, pattern="pattern2")) for _ in range(2)]
     assert torch.equal(runs[0].mesh.triangles, runs[1].mesh.triangles)
     assert torch.equal(runs[0].radiosity, runs[1].radiosity)
+
+
+def test_the_gradient_bound_holds_and_leaves_most_receivers_out_of_the_interior_jacobian():
+    from hemirad.criteria import ShotContext, gradient_score, gradient_score_bound
+    from hemirad.display import luminance
+    from hemirad.formfactor import HemicubeFormFactors, element_form_factors
+    from hemirad.gradient import ShotView, form_factor_gradient
+
+    scene = hemirad.load_scene("floating")
+    mesh = build_mesh(scene)
+    reflectance, emission = scene.reflectance_table()[mesh.material], scene.emission_table()[mesh.material]
+    ff = HemicubeFormFactors(mesh, 128)
+    try:
+        for shooter in (int(torch.nonzero(emission.sum(1) > 0)[0]), 0):  # the lamp, a wall element
+            element, front, eye, frame = ff.render(shooter)
+            view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
+            F = element_form_factors(view.element, view.front, view.weight, mesh.num_elements)
+            J = form_factor_gradient(view, ff.normals, ff.centroids, shadow_edges=False)  # the interior term
+            power = torch.tensor([1.0, 1.0, 1.0], dtype=torch.float64)
+            ctx = ShotContext(mesh, shooter, view.eye, ff.normals[shooter], F, None,
+                              luminance(reflectance * power) / mesh.areas, J)
+            rows = torch.nonzero(F > 0).reshape(-1)
+            bound = gradient_score_bound(ctx, rows, view.distance)
+            score = gradient_score(ctx)[rows]
+            assert (score <= bound * (1 + 1e-12)).all()
+            lit = score > 0  # (the lamp reflects nothing)
+            assert int(lit.sum()) > 100 and float((bound[lit] / score[lit]).median()) < 20  # not vacuous
+    finally:
+        ff.close()
+
+
+def test_refined_solve_is_the_same_with_and_without_the_bound():
+    bounded, exact = (refined_solve("floating_coarse", 15, bound=bound) for bound in (True, False))
+    assert bounded.mesh.num_elements > 1.5 * build_mesh(hemirad.load_scene("floating_coarse")).num_elements
+    assert torch.equal(bounded.mesh.triangles, exact.mesh.triangles)
+    assert torch.equal(bounded.state.radiosity, exact.state.radiosity)
