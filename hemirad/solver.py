@@ -235,9 +235,11 @@ class ProgressiveSolver:
             seen = relabelled or self._render(shooter)
             if self.refiner is None:
                 break
+            start = time.perf_counter()
             delta = received_radiosity(seen.form_factors, shot_power, self.reflectance, self.areas)
             ctx = ShotContext(self.mesh, shooter, seen.eye, self.form_factors.normals[shooter], seen.form_factors,
                               delta, luminance(self.reflectance * shot_power) / self.areas, None, candidates)
+            self.refine_seconds += time.perf_counter() - start
             ctx.jacobian, view = self._gradient(seen, ctx)
             start = time.perf_counter()
             selected = self.refiner.select(ctx)
