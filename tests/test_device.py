@@ -112,3 +112,19 @@ def test_the_cuda_path_gives_the_cpu_paths_form_factors_and_solutions():
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "llvmpipe" not in done.stdout
+
+
+@pytest.mark.skipif(CUDA, reason="this machine may have a hardware EGL device")
+def test_a_gpu_context_without_a_hardware_egl_device_is_a_clear_error():
+    # in a fresh process: opening EGL devices would change which context is current here
+    script = textwrap.dedent("""
+        from hemirad.errors import HemiradInputError
+        from hemirad.gl import GLContext
+        try:
+            GLContext.get(gpu=True)
+        except HemiradInputError as exc:
+            print(exc)
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "no EGL device renders in hardware" in done.stdout and "--device cpu" in done.stdout
