@@ -34,7 +34,7 @@ def select_device(name: str) -> torch.device:
     if not is_device_name(name):
         raise HemiradInputError(f"unknown device {name!r}: expected one of {', '.join(DEVICE_NAMES)}.")
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        name = "cuda" if torch.cuda.is_available() else "cpu"
     device = torch.device(name)
     if device.type == "cuda":
         if not torch.cuda.is_available():
