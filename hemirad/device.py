@@ -71,7 +71,6 @@ def cached_per_device(build):
     def get(resolution: int, device: torch.device | str = "cpu"):
         return cached(resolution, torch.device(device))
 
-    get.cache_clear = cached.cache_clear
     return get
 
 

@@ -79,7 +79,7 @@ class Mesh:
     @cached_property
     def areas(self) -> torch.Tensor:
         """(T,)"""
-        return 0.5 * self._cross.norm(dim=1)
+        return _area(self._cross)
 
     @cached_property
     def normals(self) -> torch.Tensor:
@@ -102,7 +102,7 @@ class Mesh:
         corners = self.vertices[triangles]
         cross = _cross(corners)
         fresh = {"corners": corners, "centroids": _centroids(self.vertices, triangles), "_cross": cross,
-                 "areas": 0.5 * cross.norm(dim=1), "normals": _unit(cross)}
+                 "areas": _area(cross), "normals": _unit(cross)}
         for name, values in fresh.items():
             if name in old.__dict__:
                 before = old.__dict__[name]
@@ -186,6 +186,10 @@ def _centroids(vertices: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
 def _cross(corners: torch.Tensor) -> torch.Tensor:
     """(T, 3) (v1 - v0) x (v2 - v0): twice the area, along the normal."""
     return torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+
+
+def _area(cross: torch.Tensor) -> torch.Tensor:
+    return 0.5 * cross.norm(dim=1)
 
 
 def _unit(x: torch.Tensor) -> torch.Tensor:
