@@ -232,7 +232,7 @@ class ProgressiveSolver:
         candidates = None if self.refiner is None else self.refiner.splittable(self.mesh, shooter)
         relabelled = None  # what the next pass sees, when carried over instead of rendered
         while True:
-            seen = relabelled or self._render(shooter)
+            seen = relabelled if relabelled is not None else self._render(shooter)
             if self.refiner is None:
                 break
             start = time.perf_counter()
