@@ -4,4 +4,4 @@ from .loader import bundled_scenes, load_scene
 from .pipeline import Result, solve
 
 __all__ = ["load_scene", "bundled_scenes", "solve", "Result", "HemiradInputError", "SceneError"]
-__version__ = "0.1.0"
+__version__ = "0.2.0"
