@@ -131,10 +131,6 @@ class Mesh:
 
     _TENSORS = ("vertices", "triangles", "surface", "material", "level", "edge_parents")
 
-    @property
-    def device(self) -> torch.device:
-        return self.vertices.device
-
     def to(self, device: torch.device | str) -> "Mesh":
         """The same mesh with its tensors on ``device`` (itself when they are there already)."""
         device = torch.device(device)
