@@ -192,3 +192,28 @@ def test_boundary_pairs_found_by_image_shifts_are_those_a_scan_of_every_pair_fin
     expected = ((element[a] != element[b]) & (element[a] >= 0) & (element[b] >= 0)).nonzero().reshape(-1)
     assert len(expected) > 100
     assert torch.equal(boundary_pairs(element, R), expected)
+
+
+@pytest.mark.parametrize("terms", [dict(), dict(shadow_edges=False), dict(interior=False)])
+def test_one_backward_pass_gives_the_forward_mode_jacobian(terms):
+    # The default (reverse) path gives every pixel's term its own copy of the eye; forward
+    # mode (jacfwd, the paper's) differentiates the summed function: the same derivative.
+    from hemirad.gradient import form_factor_gradient
+
+    for eye in EYES[:2]:
+        view, normals, points, ranges = shot(eye, [RECEIVER, BLOCKER], resolution=64)
+        wanted = torch.zeros(len(normals), dtype=torch.bool)
+        wanted[ranges[0]] = True
+        for restricted in (None, wanted):
+            J = form_factor_gradient(view, normals, points, wanted=restricted, **terms)
+            J_forward = form_factor_gradient(view, normals, points, wanted=restricted, mode="forward", **terms)
+            assert J_forward.abs().max() > 0
+            torch.testing.assert_close(J, J_forward, rtol=1e-12, atol=1e-12 * float(J_forward.abs().max()))
+
+
+def test_an_unknown_differentiation_mode_is_refused():
+    from hemirad.gradient import form_factor_gradient
+
+    view, normals, points, _ = shot(EYES[0], [RECEIVER], resolution=16)
+    with pytest.raises(ValueError, match="mode"):
+        form_factor_gradient(view, normals, points, mode="sideways")
