@@ -29,6 +29,7 @@ import torch
 from torch.func import jacfwd
 
 from .device import cached_per_device
+from .fastops import row_sums
 from .formfactor import element_form_factors, hemicube_directions
 from .hemicube import FACES, face_viewports
 
@@ -167,7 +168,7 @@ class ShotView:
         """
         eye = torch.as_tensor(eye, dtype=torch.float64, device=element.device)
         return ShotView(eye, torch.as_tensor(frame, dtype=torch.float64, device=element.device), element.reshape(-1),
-                        front.reshape(-1), weight.reshape(-1), normals, ((points - eye) * normals).sum(1),
+                        front.reshape(-1), weight.reshape(-1), normals, row_sums((points - eye) * normals),
                         weight.shape[-1])
 
     def hits(self, pixels: torch.Tensor) -> torch.Tensor:
@@ -178,31 +179,35 @@ class ShotView:
         computes every pixel's once, without the gathers, and indexes that.
         """
         if len(pixels) > len(self.element) // 3:  # measured: the gathers cost about 3x per pixel
-            return self._all_hits[:, pixels]
-        return self._hits(pixels, self.frame.T @ pixel_directions(self.resolution, self.eye.device)[:, pixels])
+            return self._all_hits.index_select(1, pixels)
+        directions = self.frame.T @ pixel_directions(self.resolution, self.eye.device).index_select(1, pixels)
+        return self._hits(self.element.index_select(0, pixels), directions)
 
     @cached_property
     def _all_hits(self) -> torch.Tensor:
-        return self._hits(slice(None), self.frame.T @ pixel_directions(self.resolution, self.eye.device))
+        return self._hits(self.element, self.frame.T @ pixel_directions(self.resolution, self.eye.device))
 
-    def _hits(self, pixels, directions: torch.Tensor) -> torch.Tensor:
-        k = self.element[pixels].clamp(min=0)
-        return self.eye[:, None] + (self.distance[k] / (directions * self.normals_by_component[:, k]).sum(0)) * directions
+    def _hits(self, element: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+        """(3, N) where the rays (3, N) ``directions`` from the eye meet the planes of the
+        (N,) ``element`` they see (any point for -1)."""
+        k = element.clamp(min=0)
+        n = self.normals_by_component.index_select(1, k)
+        return self.eye[:, None] + (self.distance.index_select(0, k) / (directions * n).sum(0)) * directions
 
     def wanted_pixels(self, wanted: torch.Tensor | None, pixels: torch.Tensor | None = None,
                       front: bool = False) -> torch.Tensor:
         """(N,) the pixels that see an element marked in ``wanted`` (every element when None),
         front-facing only with ``front``; only ``pixels`` are examined when given (the rest
         are known to see none of the wanted elements)."""
-        element = self.element if pixels is None else self.element[pixels]
+        element = self.element if pixels is None else self.element.index_select(0, pixels)
         if front:
-            mask = self.front if pixels is None else self.front[pixels]
+            mask = self.front if pixels is None else self.front.index_select(0, pixels)
         else:
             mask = element >= 0
         if wanted is not None:
-            mask = mask & wanted[element.clamp(min=0)]
+            mask = mask & wanted.index_select(0, element.clamp(min=0))
         found = mask.nonzero().reshape(-1)
-        return found if pixels is None else pixels[found]
+        return found if pixels is None else pixels.index_select(0, found)
 
     @cached_property
     def normals_by_component(self) -> torch.Tensor:
@@ -246,12 +251,12 @@ class ReceiverPatches:
         """The patches of the front-facing pixels, or only of those that see an element marked
         in ``wanted`` (T,) bool, looked for among ``pixels`` (N,) when given."""
         pixels = view.wanted_pixels(wanted, pixels, front=True)
-        element = view.element[pixels]
+        element = view.element.index_select(0, pixels)
         offset = view.hits(pixels) - view.eye[:, None]
-        normal = view.normals_by_component[:, element]
+        normal = view.normals_by_component.index_select(1, element)
         shooter_normal = view.frame[2]
         patches = ReceiverPatches(view.eye, offset, element, normal, shooter_normal, shooter_normal @ offset,
-                                  (normal * offset).sum(0), (offset * offset).sum(0), view.weight[pixels])
+                                  (normal * offset).sum(0), (offset * offset).sum(0), view.weight.index_select(0, pixels))
         patches.scale = patches.scale / point_to_patch_kernel(view.eye, patches)
         return patches
 
@@ -329,27 +334,32 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
     """
     R = view.resolution
     a, b, step = neighbour_pairs(R, view.eye.device)
+
+    def ends(side, pair):  # the element at one end of each pair
+        return view.element.index_select(0, side.index_select(0, pair))
+
     if pixels is not None and len(pixels) < len(view.element) // 16:
         # A later pass of a refining shot: the few pairs that touch a wanted element's pixel.
         pair = pairs_touching(view.wanted_pixels(wanted, pixels), R)
-        ea, eb = view.element[a[pair]], view.element[b[pair]]
+        ea, eb = ends(a, pair), ends(b, pair)
         keep = (ea != eb) & (ea >= 0) & (eb >= 0)
         if plane_ids is not None:
-            keep &= plane_ids[ea.clamp(min=0)] != plane_ids[eb.clamp(min=0)]
+            keep &= plane_ids.index_select(0, ea.clamp(min=0)) != plane_ids.index_select(0, eb.clamp(min=0))
     else:  # all pairs across an element (or plane) boundary, then those touching a wanted element
         label = view.element
         if plane_ids is not None:
-            label = torch.where(label >= 0, plane_ids[label.clamp(min=0)], -1)
+            label = torch.where(label >= 0, plane_ids.index_select(0, label.clamp(min=0)), -1)
         pair = boundary_pairs(label, R)
-        ea, eb = view.element[a[pair]], view.element[b[pair]]
-        keep = torch.ones(len(pair), dtype=torch.bool, device=pair.device) if wanted is None else wanted[ea] | wanted[eb]
+        ea, eb = ends(a, pair), ends(b, pair)
+        keep = torch.ones(len(pair), dtype=torch.bool, device=pair.device) if wanted is None else \
+            wanted.index_select(0, ea) | wanted.index_select(0, eb)
     keep = keep.nonzero().reshape(-1)
-    pair = pair[keep]
-    a, b, ea, eb = a[pair], b[pair], ea[keep], eb[keep]
+    pair = pair.index_select(0, keep)
+    a, b, ea, eb = a.index_select(0, pair), b.index_select(0, pair), ea.index_select(0, keep), eb.index_select(0, keep)
     # Without plane ids most such pairs are coplanar neighbours on a finely meshed surface:
     # the plane tests run over all of them, in components-first layout.
     def side(X, k):  # signed distance of X (3, K) from element k's plane, positive on the eye's side
-        n, p = view.normals_by_component[:, k], points[k].T
+        n, p = view.normals_by_component.index_select(1, k), points.index_select(0, k).T
         return (n * (X - p)).sum(0) * torch.sign((n * (view.eye[:, None] - p)).sum(0))
 
     Xa, Xb = view.hits(a), view.hits(b)  # (3, K)
@@ -486,7 +496,10 @@ def form_factor_gradient(view: ShotView, normals: torch.Tensor, points: torch.Te
             ([(pairs.far_element, lambda c: shadow_edge_terms(c, view, pairs))] if pairs is not None else [])
     if mode == "forward":
         return jacfwd(lambda c: sum(summed_rows(index, terms(c), T) for index, terms in parts))(view.eye)
-    return sum(summed_rows(index, eye_gradients(terms, view.eye, len(index)), T) for index, terms in parts)
+    J = torch.zeros(T, 3, dtype=torch.float64, device=view.eye.device)
+    for index, terms in parts:
+        J.index_add_(0, index, eye_gradients(terms, view.eye, len(index)))
+    return J
 
 
 def form_factor_jacobian(view: ShotView, normals: torch.Tensor, points: torch.Tensor,

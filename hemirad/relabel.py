@@ -14,7 +14,9 @@ from dataclasses import dataclass
 
 import torch
 
+from .fastops import row_sums
 from .formfactor import sum_by_index
+from .split import inherit
 
 
 @dataclass
@@ -42,15 +44,16 @@ def descendants(parent: torch.Tensor) -> Descent:
             identity on its first T entries.
     """
     count = torch.bincount(parent)
-    in_split = (count[parent] > 1).nonzero().reshape(-1)  # few: sort only these
-    ordered = in_split[torch.argsort(parent[in_split], stable=True)]
+    in_split = (inherit(count, parent) > 1).nonzero().reshape(-1)  # few: sort only these
+    ordered = in_split.index_select(0, torch.argsort(parent.index_select(0, in_split), stable=True))
     split_count = torch.where(count > 1, count, 0)
     return Descent(parent, ordered, torch.cumsum(split_count, 0) - split_count, count)
 
 
 def split_pixels_of(element: torch.Tensor, descent: Descent) -> torch.Tensor:
     """(N,) the pixels whose element was split (it has more than one descendant)."""
-    return ((element >= 0) & (descent.count[element.clamp(min=0)] > 1)).nonzero().reshape(-1)
+    was_split = (descent.count > 1).index_select(0, element.clamp(min=0))
+    return ((element >= 0) & was_split).nonzero().reshape(-1)
 
 
 def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch.Tensor, descent: Descent,
@@ -71,8 +74,8 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
         return out
     # Every (pixel, descendant of its old element) pair, then the descendant that holds the
     # hit point best: the largest smallest signed distance to its three edges (inside: >= 0).
-    old_of_pixel = element[split_pixels]
-    n_candidates = descent.count[old_of_pixel]
+    old_of_pixel = element.index_select(0, split_pixels)
+    n_candidates = descent.count.index_select(0, old_of_pixel)
     device = element.device
     pixel = torch.repeat_interleave(torch.arange(len(split_pixels), device=device), n_candidates)
     first = torch.cumsum(n_candidates, 0) - n_candidates
@@ -84,7 +87,7 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
 
     def inside(p, q):  # signed distance of y from the edge p -> q, positive on the left
         edge = q - p
-        return (torch.linalg.cross(edge, y - p) * n).sum(1) / edge.norm(dim=1)
+        return row_sums(torch.linalg.cross(edge, y - p) * n) / edge.norm(dim=1)
 
     margin = torch.minimum(torch.minimum(inside(a, b), inside(b, c)), inside(c, a))
     best = torch.full((len(split_pixels),), -torch.inf, dtype=margin.dtype, device=device).scatter_reduce(
@@ -110,7 +113,7 @@ def relabel_form_factors(form_factors: torch.Tensor, descent: Descent, element: 
         (T',)
     """
     parent = descent.parent
-    unsplit = descent.count[parent] == 1
-    out = torch.where(unsplit, form_factors[parent], torch.zeros((), dtype=form_factors.dtype, device=parent.device))
-    pixels = split_pixels[front[split_pixels]]
-    return out + sum_by_index(element[pixels], weight[pixels], len(parent))
+    unsplit = inherit(descent.count, parent) == 1
+    out = torch.where(unsplit, inherit(form_factors, parent), 0.0)
+    pixels = split_pixels.index_select(0, front.index_select(0, split_pixels).nonzero().reshape(-1))
+    return out + sum_by_index(element.index_select(0, pixels), weight.index_select(0, pixels), len(parent))

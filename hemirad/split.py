@@ -55,14 +55,18 @@ def _merged_index(index: tuple[torch.Tensor, torch.Tensor], keys: torch.Tensor,
     """``_midpoint_index`` with the (k,) new ``midpoints`` on the edges of ``keys`` added
     (no key is in it yet: an edge is split once)."""
     old_keys, old_mid = index
+    M, device = len(old_keys), keys.device
     keys, order = torch.sort(keys)
-    at = torch.searchsorted(old_keys, keys) + torch.arange(len(keys), device=keys.device)  # in the merged list
-    is_new = torch.zeros(len(old_keys) + len(keys), dtype=torch.bool, device=keys.device)
-    is_new[at] = True
-    merged_keys, merged_mid = torch.empty_like(is_new, dtype=torch.int64), torch.empty_like(is_new, dtype=torch.int64)
-    merged_keys[at], merged_mid[at] = keys, midpoints[order]
-    merged_keys[~is_new], merged_mid[~is_new] = old_keys, old_mid
-    return merged_keys, merged_mid
+    slot = torch.searchsorted(old_keys, keys)  # (k,) the old keys before each new one
+    new_at = slot + torch.arange(len(keys), device=device)  # its place in the merged list
+    # each old key moves up by the number of new keys before it
+    moved_by = torch.zeros(M + 1, dtype=torch.int64, device=device).index_add_(0, slot, torch.ones_like(slot))
+    old_at = torch.arange(M, device=device) + moved_by.cumsum(0)[:M]
+    merged = []
+    for old, new in ((old_keys, keys), (old_mid, midpoints.index_select(0, order))):
+        out = torch.empty(M + len(keys), dtype=torch.int64, device=device)
+        merged.append(out.index_copy_(0, old_at, old).index_copy_(0, new_at, new))
+    return merged[0], merged[1]
 
 
 def midpoint_lookup(mesh: Mesh):
@@ -80,7 +84,7 @@ def midpoint_lookup(mesh: Mesh):
         if len(keys) == 0:
             return torch.full_like(query, -1)
         pos = torch.searchsorted(keys, query).clamp_max(len(keys) - 1)
-        return torch.where(keys[pos] == query, mid_index[pos], torch.full_like(query, -1))
+        return torch.where(keys.index_select(0, pos) == query, mid_index.index_select(0, pos), -1)
 
     return find
 
@@ -232,7 +236,7 @@ def inherit(values: torch.Tensor, parent: torch.Tensor) -> torch.Tensor:
     Returns:
         (T', ...) a new tensor.
     """
-    return torch.cat([values, values[parent[len(values):]]])
+    return torch.cat([values, values.index_select(0, parent[len(values):])])
 
 
 def unbalanced(mesh: Mesh, near: torch.Tensor | None = None) -> torch.Tensor:
@@ -249,16 +253,19 @@ def unbalanced(mesh: Mesh, near: torch.Tensor | None = None) -> torch.Tensor:
     """
     find = midpoint_lookup(mesh)
     out = torch.zeros(mesh.num_elements, dtype=torch.bool, device=mesh.triangles.device)
-    candidates = torch.arange(mesh.num_elements, device=out.device) if near is None else \
-        torch.nonzero(near[mesh.triangles].any(dim=1)).reshape(-1)
-    triangles = mesh.triangles[candidates]
+    if near is None:
+        candidates, triangles = torch.arange(mesh.num_elements, device=out.device), mesh.triangles
+    else:
+        marked = near.index_select(0, mesh.triangles.reshape(-1)).reshape(-1, 3)
+        candidates = torch.nonzero(marked[:, 0] | marked[:, 1] | marked[:, 2]).reshape(-1)
+        triangles = mesh.triangles.index_select(0, candidates)
     a = triangles.reshape(-1)
-    b = triangles[:, [1, 2, 0]].reshape(-1)
+    b = torch.stack([triangles[:, 1], triangles[:, 2], triangles[:, 0]], dim=1).reshape(-1)
     m = find(a, b)
     has = m >= 0
     m_safe = torch.where(has, m, a)
-    nested = has & ((find(a, m_safe) >= 0) | (find(m_safe, b) >= 0))
-    out[candidates] = nested.reshape(-1, 3).any(dim=1)
+    nested = (has & ((find(a, m_safe) >= 0) | (find(m_safe, b) >= 0))).reshape(-1, 3)
+    out[candidates] = nested[:, 0] | nested[:, 1] | nested[:, 2]
     return out
 
 
