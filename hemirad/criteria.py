@@ -51,7 +51,8 @@ def gradient_score(ctx: ShotContext) -> torch.Tensor:
     of its corners instead of its centroid: large where a point source is a poor stand-in.
     """
     grad = ctx.luminance_per_form_factor[:, None] * ctx.jacobian  # (T, 3)
-    offsets = ctx.mesh.corners[ctx.shooter] - ctx.mesh.corners[ctx.shooter].mean(0)  # (3, 3)
+    shooter = ctx.mesh.corners_of(ctx.shooter)
+    offsets = shooter - shooter.mean(0)  # (3, 3)
     return (grad @ offsets.T).abs().amax(dim=1)
 
 
@@ -69,11 +70,11 @@ def gradient_score_bound(ctx: ShotContext, rows: torch.Tensor, distance: torch.T
     Args:
         rows: (R,) receivers; distance: (T,) n_j . (p_j - eye) (``ShotView.distance``).
     """
-    corners = ctx.mesh.corners[rows]  # (R, 3, 3)
+    corners = ctx.mesh.corners_of(rows)  # (R, 3, 3)
     lowest = ((corners - ctx.eye) @ ctx.normal).amin(dim=1)  # (R,) A_min
     height = distance[rows].abs()  # B
     rate = torch.where(lowest > 0, 1.0 / lowest.clamp(min=1e-300) + 5.0 / height, torch.inf)
-    shooter = ctx.mesh.corners[ctx.shooter]
+    shooter = ctx.mesh.corners_of(ctx.shooter)
     reach = (shooter - shooter.mean(0)).norm(dim=1).max()  # max_k |P_k - G|
     return ctx.luminance_per_form_factor[rows] * ctx.form_factors[rows] * rate * reach
 

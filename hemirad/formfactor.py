@@ -134,7 +134,7 @@ class HemicubeFormFactors:
 
     def set_geometry(self, mesh: Mesh) -> None:
         """Replace the mesh (after refinement); it must stay inside the first one's bounds."""
-        self.corners, self.normals, self.centroids = mesh.corners, mesh.normals, mesh.centroids
+        self.mesh, self.normals, self.centroids = mesh, mesh.normals, mesh.centroids
         self.hemicube.set_geometry(mesh.vertices, mesh.triangles)
 
     def close(self) -> None:
@@ -148,7 +148,7 @@ class HemicubeFormFactors:
             device, the eye (3,) and the hemicube's frame (3, 3) as NumPy arrays.
         """
         normal = self.normals[shooter].cpu().numpy()
-        corners = self.corners[shooter].cpu().numpy()
+        corners = self.mesh.corners_of(shooter).cpu().numpy()
         frame = tangent_frame(normal, corners[1] - corners[0])
         eye = self.centroids[shooter].cpu().numpy() + self.eye_offset * normal
         items = self.hemicube.render(eye, frame, self.near, self.far)
@@ -162,7 +162,7 @@ class HemicubeFormFactors:
         """(T,) F_sj from element ``shooter`` to every element j."""
         element, front, _, _ = self.render(shooter)
         start = time.perf_counter()
-        F = element_form_factors(element, front, self.weights, len(self.corners))
+        F = element_form_factors(element, front, self.weights, self.mesh.num_elements)
         self.seconds += time.perf_counter() - start
         return F
 

@@ -86,30 +86,36 @@ class Mesh:
         """(T, 3) unit normals."""
         return _unit(self._cross)
 
+    def corners_of(self, index) -> torch.Tensor:
+        """(..., 3, 3) the vertex positions of the triangles ``index`` (an int or an (R,)
+        tensor), without computing every triangle's (``corners``)."""
+        return self.vertices[self.triangles[index]]
+
+    _HANDED_OVER = ("centroids", "areas", "normals")
+
     def inherit_geometry(self, old: "Mesh", rows: torch.Tensor) -> None:
-        """Take over ``old``'s computed geometry: this mesh has ``old``'s triangles at the same
-        indices except at ``rows`` (replaced ones, and every index past ``old``'s end), and
-        only those rows are computed. Every formula works row by row, so the numbers are
-        the ones a computation of all rows gives.
+        """Take over ``old``'s computed centroids, areas and normals: this mesh has ``old``'s
+        triangles at the same indices except at ``rows`` (replaced ones, and every index
+        past ``old``'s end), and only those rows are computed. Every formula works row by
+        row, so the numbers are the ones a computation of all rows gives. (``corners``, the
+        largest, is not handed over: the solver reads it by ``corners_of``.)
 
         Args:
             old: the mesh this one was made from (its vertices are a prefix of this one's).
             rows: (K,) int64 indices into this mesh.
         """
-        if "_cross" not in old.__dict__:
+        names = [name for name in self._HANDED_OVER if name in old.__dict__]
+        if not names:
             return
-        triangles = self.triangles[rows]
-        corners = self.vertices[triangles]
-        cross = _cross(corners)
-        fresh = {"corners": corners, "centroids": _centroids(self.vertices, triangles), "_cross": cross,
-                 "areas": _area(cross), "normals": _unit(cross)}
-        for name, values in fresh.items():
-            if name in old.__dict__:
-                before = old.__dict__[name]
-                merged = torch.empty((self.num_elements, *before.shape[1:]), dtype=before.dtype, device=before.device)
-                merged[:len(before)] = before
-                merged[rows] = values
-                self.__dict__[name] = merged
+        triangles = self.triangles.index_select(0, rows)
+        cross = _cross(self.vertices[triangles])
+        fresh = {"centroids": lambda: _centroids(self.vertices, triangles), "areas": lambda: _area(cross),
+                 "normals": lambda: _unit(cross)}
+        for name in names:
+            before = old.__dict__[name]
+            merged = torch.empty((self.num_elements, *before.shape[1:]), dtype=before.dtype, device=before.device)
+            merged[:len(before)] = before
+            self.__dict__[name] = merged.index_copy_(0, rows, fresh[name]())
 
     @cached_property
     def plane_ids(self) -> torch.Tensor:

@@ -16,6 +16,7 @@ import torch
 
 from .fastops import row_sums
 from .formfactor import sum_by_index
+from .mesh import Mesh
 from .split import inherit
 
 
@@ -57,7 +58,7 @@ def split_pixels_of(element: torch.Tensor, descent: Descent) -> torch.Tensor:
 
 
 def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch.Tensor, descent: Descent,
-                  corners: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+                  mesh: Mesh) -> torch.Tensor:
     """The element each pixel sees after a split, from what it saw before.
 
     Args:
@@ -65,7 +66,7 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
         hits: (3, N) world points seen by ``split_pixels``, the (N,) pixels whose old element
             was split (``split_pixels_of``).
         descent: the split's ``descendants``.
-        corners: (T', 3, 3) and normals: (T', 3) of the new elements.
+        mesh: the new elements.
     Returns:
         (P,) new element per pixel, -1 for none.
     """
@@ -82,8 +83,8 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
     rank = torch.arange(len(pixel), device=device) - first[pixel]
     candidate = descent.ordered[descent.start[old_of_pixel][pixel] + rank]
     y = hits[:, pixel].T  # (M, 3)
-    a, b, c = corners[candidate].unbind(dim=1)
-    n = normals[candidate]
+    a, b, c = mesh.corners_of(candidate).unbind(dim=1)
+    n = mesh.normals.index_select(0, candidate)
 
     def inside(p, q):  # signed distance of y from the edge p -> q, positive on the left
         edge = q - p

@@ -77,7 +77,7 @@ class Seen:
         the new ``mesh``'s elements to the old ones; ``view`` is this pass's ShotView."""
         descent = descendants(parent)
         pixels = split_pixels_of(self.element, descent)
-        element = relabel_atlas(self.element, view.hits(pixels), pixels, descent, mesh.corners, mesh.normals)
+        element = relabel_atlas(self.element, view.hits(pixels), pixels, descent, mesh)
         form_factors = relabel_form_factors(self.form_factors, descent, element, self.front, weight, pixels)
         return Seen(element, self.front, self.eye, self.frame, form_factors, pixels)
 

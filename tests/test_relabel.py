@@ -37,8 +37,7 @@ def test_relabelled_atlas_is_the_new_render_but_for_a_few_edge_pixels():
         descent = descendants(parent)
         pixels = split_pixels_of(view.element, descent)
         assert len(pixels) > 10000
-        relabelled = relabel_atlas(view.element, view.hits(pixels), pixels, descent, new_mesh.corners,
-                                   new_mesh.normals)
+        relabelled = relabel_atlas(view.element, view.hits(pixels), pixels, descent, new_mesh)
         # the form factors carried over are those of the relabelled atlas, bit for bit
         weight = ff.weights.reshape(-1)
         F_old = element_form_factors(view.element, view.front, weight, mesh.num_elements)
