@@ -1,7 +1,8 @@
 """Refinement criteria: per receiver, how wrong one shot's constant-per-element answer is.
 
-Every criterion scores all elements at once from what a shot computed (``ShotContext``) and
-returns a (T,) tensor; the refiner splits the elements whose score exceeds the threshold.
+Every criterion scores the elements at once from what a shot computed (``ShotContext``):
+all of them, a (T,) tensor, or the rows asked for; the refiner splits the elements whose
+score exceeds the threshold.
 Scores are luminances of radiosity (Rec. 709 weights over RGB), except ``uniform``'s,
 which is an edge length.
 """
@@ -13,7 +14,6 @@ from typing import Callable
 import torch
 
 from .analytic import point_to_triangles
-from .display import luminance
 from .mesh import Mesh
 
 
@@ -26,8 +26,8 @@ class ShotContext:
         shooter: index of the shooting element.
         eye: (3,) the hemicube's centre; normal: (3,) the shooter's normal.
         form_factors: (T,) F_sj.
-        received: (T, 3) the radiosity this shot gives each element.
-        luminance_per_form_factor: (T,) d(luminance of received)/dF_sj.
+        luminance_per_form_factor: (T,) d(luminance of received)/dF_sj: the luminance of
+            the radiosity this shot gives element j is F_sj times it.
         jacobian: (T, 3) dF_sj/dc (interior and/or shadow-edge terms), when the criterion
             needs it; zero outside ``candidates``.
         candidates: (T,) bool, the receivers this pass of the shot judges; None for all.
@@ -38,19 +38,26 @@ class ShotContext:
     eye: torch.Tensor
     normal: torch.Tensor
     form_factors: torch.Tensor
-    received: torch.Tensor
     luminance_per_form_factor: torch.Tensor
     jacobian: torch.Tensor | None = None
     candidates: torch.Tensor | None = None
 
 
-def gradient_score(ctx: ShotContext) -> torch.Tensor:
+def _rows(values: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
+    return values if rows is None else values.index_select(0, rows)
+
+
+def _corners(ctx: ShotContext, rows: torch.Tensor | None) -> torch.Tensor:
+    return ctx.mesh.corners if rows is None else ctx.mesh.corners_of(rows)
+
+
+def gradient_score(ctx: ShotContext, rows: torch.Tensor | None = None) -> torch.Tensor:
     """The paper's eq. 7: max over the shooter's vertices P_k of |grad B_j . (P_k - G)|.
 
     The first-order change of what receiver j gets had the shooter's energy left from one
     of its corners instead of its centroid: large where a point source is a poor stand-in.
     """
-    grad = ctx.luminance_per_form_factor[:, None] * ctx.jacobian  # (T, 3)
+    grad = _rows(ctx.luminance_per_form_factor, rows)[:, None] * _rows(ctx.jacobian, rows)  # (R, 3)
     shooter = ctx.mesh.corners_of(ctx.shooter)
     offsets = shooter - shooter.mean(0)  # (3, 3)
     return (grad @ offsets.T).abs().amax(dim=1)
@@ -68,67 +75,69 @@ def gradient_score_bound(ctx: ShotContext, rows: torch.Tensor, distance: torch.T
     a receiver reaching below the shooter's plane (A_min <= 0) gets no bound (infinity).
 
     Args:
-        rows: (R,) receivers; distance: (T,) n_j . (p_j - eye) (``ShotView.distance``).
+        rows: (R,) receivers; distance: (R,) their n_j . (p_j - eye) (``ShotView.distance_of``).
     """
     corners = ctx.mesh.corners_of(rows)  # (R, 3, 3)
     lowest = ((corners - ctx.eye) @ ctx.normal).amin(dim=1)  # (R,) A_min
-    height = distance[rows].abs()  # B
+    height = distance.abs()  # B
     rate = torch.where(lowest > 0, 1.0 / lowest.clamp(min=1e-300) + 5.0 / height, torch.inf)
     shooter = ctx.mesh.corners_of(ctx.shooter)
     reach = (shooter - shooter.mean(0)).norm(dim=1).max()  # max_k |P_k - G|
     return ctx.luminance_per_form_factor[rows] * ctx.form_factors[rows] * rate * reach
 
 
-def receiver_score(ctx: ShotContext) -> torch.Tensor:
+def receiver_score(ctx: ShotContext, rows: torch.Tensor | None = None) -> torch.Tensor:
     """The first-order variation of received radiosity across each receiver itself.
 
     Translating the receiver by t changes the frozen-visibility kernel as translating the
     shooter by -t does, so its gradient is minus the interior Jacobian; it is dotted with
     the receiver's own vertex offsets.
     """
-    grad = -ctx.luminance_per_form_factor[:, None] * ctx.jacobian  # (T, 3)
-    corners = ctx.mesh.corners
-    offsets = corners - corners.mean(dim=1, keepdim=True)  # (T, 3, 3)
+    grad = -_rows(ctx.luminance_per_form_factor, rows)[:, None] * _rows(ctx.jacobian, rows)  # (R, 3)
+    corners = _corners(ctx, rows)
+    offsets = corners - corners.mean(dim=1, keepdim=True)  # (R, 3, 3)
     return torch.einsum("tc,tkc->tk", grad, offsets).abs().amax(dim=1)
 
 
-def partial_visibility_score(ctx: ShotContext) -> torch.Tensor:
+def partial_visibility_score(ctx: ShotContext, rows: torch.Tensor | None = None) -> torch.Tensor:
     """Radiosity a partly visible receiver misses: (unoccluded F - hemicube F) in luminance.
 
     Zero for receivers the shooter does not see at all; these are not on a shadow edge
     (or are wholly inside a shadow, where a finer mesh would not help).
     """
-    unoccluded = point_to_triangles(ctx.eye, ctx.normal, ctx.mesh.corners)
-    missing = (unoccluded - ctx.form_factors).clamp(min=0)
-    return torch.where(ctx.form_factors > 0, ctx.luminance_per_form_factor * missing, torch.zeros_like(missing))
+    unoccluded = point_to_triangles(ctx.eye, ctx.normal, _corners(ctx, rows))
+    form_factors = _rows(ctx.form_factors, rows)
+    missing = (unoccluded - form_factors).clamp(min=0)
+    return torch.where(form_factors > 0, _rows(ctx.luminance_per_form_factor, rows) * missing, torch.zeros_like(missing))
 
 
-def neighbor_difference_score(ctx: ShotContext) -> torch.Tensor:
+def neighbor_difference_score(ctx: ShotContext, rows: torch.Tensor | None = None) -> torch.Tensor:
     """The classic baseline: the largest difference in received luminance to any element
     sharing a vertex (vertices are shared within a surface only)."""
-    value = luminance(ctx.received)  # (T,)
+    value = ctx.luminance_per_form_factor * ctx.form_factors  # (T,) luminance of the received radiosity
     triangles = ctx.mesh.triangles
     V = len(ctx.mesh.vertices)
     spread = value[:, None].expand(-1, 3).reshape(-1)
     at = triangles.reshape(-1)
     high = torch.full((V,), -torch.inf, dtype=value.dtype, device=value.device).scatter_reduce(0, at, spread, "amax")
     low = torch.full((V,), torch.inf, dtype=value.dtype, device=value.device).scatter_reduce(0, at, spread, "amin")
-    return torch.maximum(high[triangles] - value[:, None], value[:, None] - low[triangles]).amax(dim=1)
+    return _rows(torch.maximum(high[triangles] - value[:, None], value[:, None] - low[triangles]).amax(dim=1), rows)
 
 
-def uniform_score(ctx: ShotContext) -> torch.Tensor:
+def uniform_score(ctx: ShotContext, rows: torch.Tensor | None = None) -> torch.Tensor:
     """Each element's longest edge: with the threshold as a target size, splits everything
     down to it (the brute-force reference)."""
-    corners = ctx.mesh.corners
+    corners = _corners(ctx, rows)
     return (corners - corners.roll(1, dims=1)).norm(dim=-1).amax(dim=1)
 
 
 @dataclass(frozen=True)
 class Criterion:
-    score: Callable[[ShotContext], torch.Tensor]
+    # (ctx, rows or None) -> the (R,) scores of those receivers, or (T,) of all of them
+    score: Callable[[ShotContext, torch.Tensor | None], torch.Tensor]
     jacobian: str | None  # "full", "interior" or None: which form-factor gradient it reads
     radiosity_units: bool = True  # False: the threshold is a length
-    # (ctx without its jacobian, rows, ShotView.distance) -> (rows,) an upper bound of the
+    # (ctx without its jacobian, rows, ShotView.distance_of(rows)) -> (rows,) an upper bound of the
     # score's interior part, for leaving receivers out of the interior Jacobian; None: none
     interior_bound: Callable[[ShotContext, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
 

@@ -141,8 +141,7 @@ class ShotView:
         element: (P,) element seen by each pixel, -1 for none.
         front: (P,) bool, the pixel sees an element's front.
         weight: (P,) delta form factor of each pixel.
-        normals: (T, 3) every element's unit normal.
-        distance: (T,) n_j . (p_j - eye): each element's plane seen from the eye.
+        normals, points: (T, 3) every element's unit normal and a point on its plane.
         resolution: R.
     """
 
@@ -152,7 +151,7 @@ class ShotView:
     front: torch.Tensor
     weight: torch.Tensor
     normals: torch.Tensor
-    distance: torch.Tensor
+    points: torch.Tensor
     resolution: int
 
     @staticmethod
@@ -168,8 +167,20 @@ class ShotView:
         """
         eye = torch.as_tensor(eye, dtype=torch.float64, device=element.device)
         return ShotView(eye, torch.as_tensor(frame, dtype=torch.float64, device=element.device), element.reshape(-1),
-                        front.reshape(-1), weight.reshape(-1), normals, row_sums((points - eye) * normals),
-                        weight.shape[-1])
+                        front.reshape(-1), weight.reshape(-1), normals, points, weight.shape[-1])
+
+    @cached_property
+    def distance(self) -> torch.Tensor:
+        """(T,) n_j . (p_j - eye): each element's plane seen from the eye."""
+        return row_sums((self.points - self.eye) * self.normals)
+
+    def distance_of(self, k: torch.Tensor) -> torch.Tensor:
+        """(N,) ``distance`` of the (N,) elements ``k`` only (the same numbers)."""
+        return row_sums((self.points.index_select(0, k) - self.eye) * self.normals.index_select(0, k))
+
+    def normals_of(self, k: torch.Tensor) -> torch.Tensor:
+        """(3, N) the normals of the (N,) elements ``k``, components first (contiguous)."""
+        return self.normals.index_select(0, k).T.contiguous()
 
     def hits(self, pixels: torch.Tensor) -> torch.Tensor:
         """(3, N) the world points the given pixels (N,) see, components first.
@@ -181,18 +192,18 @@ class ShotView:
         if len(pixels) > len(self.element) // 3:  # measured: the gathers cost about 3x per pixel
             return self._all_hits.index_select(1, pixels)
         directions = self.frame.T @ pixel_directions(self.resolution, self.eye.device).index_select(1, pixels)
-        return self._hits(self.element.index_select(0, pixels), directions)
+        k = self.element.index_select(0, pixels).clamp(min=0)
+        return self._hits(k, self.distance_of(k), directions)
 
     @cached_property
     def _all_hits(self) -> torch.Tensor:
-        return self._hits(self.element, self.frame.T @ pixel_directions(self.resolution, self.eye.device))
+        k = self.element.clamp(min=0)
+        return self._hits(k, self.distance.index_select(0, k), self.frame.T @ pixel_directions(self.resolution, self.eye.device))
 
-    def _hits(self, element: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+    def _hits(self, k: torch.Tensor, distance: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
         """(3, N) where the rays (3, N) ``directions`` from the eye meet the planes of the
-        (N,) ``element`` they see (any point for -1)."""
-        k = element.clamp(min=0)
-        n = self.normals_by_component.index_select(1, k)
-        return self.eye[:, None] + (self.distance.index_select(0, k) / (directions * n).sum(0)) * directions
+        (N,) elements ``k``, whose ``distance`` (N,) is given."""
+        return self.eye[:, None] + (distance / (directions * self.normals_of(k)).sum(0)) * directions
 
     def wanted_pixels(self, wanted: torch.Tensor | None, pixels: torch.Tensor | None = None,
                       front: bool = False) -> torch.Tensor:
@@ -208,11 +219,6 @@ class ShotView:
             mask = mask & wanted.index_select(0, element.clamp(min=0))
         found = mask.nonzero().reshape(-1)
         return found if pixels is None else pixels.index_select(0, found)
-
-    @cached_property
-    def normals_by_component(self) -> torch.Tensor:
-        """(3, T) the element normals, components first (contiguous)."""
-        return self.normals.T.contiguous()
 
 
 @dataclass
@@ -253,7 +259,7 @@ class ReceiverPatches:
         pixels = view.wanted_pixels(wanted, pixels, front=True)
         element = view.element.index_select(0, pixels)
         offset = view.hits(pixels) - view.eye[:, None]
-        normal = view.normals_by_component.index_select(1, element)
+        normal = view.normals_of(element)
         shooter_normal = view.frame[2]
         patches = ReceiverPatches(view.eye, offset, element, normal, shooter_normal, shooter_normal @ offset,
                                   (normal * offset).sum(0), (offset * offset).sum(0), view.weight.index_select(0, pixels))
@@ -359,7 +365,7 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
     # Without plane ids most such pairs are coplanar neighbours on a finely meshed surface:
     # the plane tests run over all of them, in components-first layout.
     def side(X, k):  # signed distance of X (3, K) from element k's plane, positive on the eye's side
-        n, p = view.normals_by_component.index_select(1, k), points.index_select(0, k).T
+        n, p = view.normals_of(k), points.index_select(0, k).T
         return (n * (X - p)).sum(0) * torch.sign((n * (view.eye[:, None] - p)).sum(0))
 
     Xa, Xb = view.hits(a), view.hits(b)  # (3, K)

@@ -5,6 +5,7 @@ import torch
 
 from .criteria import CRITERIA, ShotContext
 from .display import luminance
+from .gradient import ShotView
 from .mesh import Mesh
 from .scene import RefineOptions
 from .split import hand_over_geometry, inherit, split_triangles, unbalanced
@@ -53,13 +54,13 @@ class Refiner:
         out[shooter] = False
         return out
 
-    def could_exceed(self, ctx: ShotContext, distance: torch.Tensor) -> torch.Tensor | None:
+    def could_exceed(self, ctx: ShotContext, view: ShotView) -> torch.Tensor | None:
         """(T,) bool: the pass's candidates whose score's interior part may pass the threshold
         (the criterion's ``interior_bound``), the only ones whose interior Jacobian is needed;
         None when the criterion has no bound (all candidates then need it).
 
         Args:
-            ctx: the pass, before its Jacobian; distance: (T,) ``ShotView.distance``.
+            ctx: the pass, before its Jacobian; view: what its hemicube saw.
         """
         if self.criterion.interior_bound is None:
             return None
@@ -67,7 +68,7 @@ class Refiner:
         rows = torch.nonzero(candidates).reshape(-1)
         out = torch.zeros_like(candidates)
         # with room for rounding: an element at the threshold keeps its exact score
-        out[rows] = self.criterion.interior_bound(ctx, rows, distance) * (1.0 + 1e-9) > self.threshold
+        out[rows] = self.criterion.interior_bound(ctx, rows, view.distance_of(rows)) * (1.0 + 1e-9) > self.threshold
         return out
 
     def select(self, ctx: ShotContext) -> torch.Tensor:
@@ -75,16 +76,18 @@ class Refiner:
         every ``splittable`` one), largest first when the element budget binds (it is never
         exceeded)."""
         mesh, o = ctx.mesh, self.options
-        score = self.criterion.score(ctx)
-        eligible = score > self.threshold
-        eligible &= self.splittable(mesh, ctx.shooter) if ctx.candidates is None else ctx.candidates
+        candidates = self.splittable(mesh, ctx.shooter) if ctx.candidates is None else ctx.candidates
+        rows = torch.nonzero(candidates).reshape(-1)
+        score = self.criterion.score(ctx, rows)
+        over = score > self.threshold
+        rows, score = rows[over], score[over]
         room = (o.max_elements - mesh.num_elements) // (self.children - 1)
-        if int(eligible.sum()) > room:
-            candidates = torch.nonzero(eligible).reshape(-1)
+        if len(rows) > room:
             # stable sort: ties keep index order, so the choice is deterministic
-            order = torch.argsort(score[candidates], descending=True, stable=True)
-            eligible = torch.zeros_like(eligible)
-            eligible[candidates[order[:max(room, 0)]]] = True
+            order = torch.argsort(score, descending=True, stable=True)
+            rows = rows[order[:max(room, 0)]]
+        eligible = torch.zeros_like(candidates)
+        eligible[rows] = True
         return eligible
 
     def split(self, mesh: Mesh, selected: torch.Tensor) -> tuple[Mesh, torch.Tensor]:

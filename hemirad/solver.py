@@ -191,7 +191,7 @@ class ProgressiveSolver:
             J = form_factor_gradient(view, ff.normals, ff.centroids, interior=options.interior or wanted == "interior",
                                      shadow_edges=options.shadow_edges and wanted == "full", wanted=ctx.candidates,
                                      plane_ids=self.mesh.plane_ids, pixels=seen.changed,
-                                     interior_wanted=self.refiner.could_exceed(ctx, view.distance) if self.bound else None)
+                                     interior_wanted=self.refiner.could_exceed(ctx, view) if self.bound else None)
         self.gradient_seconds += time.perf_counter() - start
         return J, view
 
@@ -236,9 +236,8 @@ class ProgressiveSolver:
             if self.refiner is None:
                 break
             start = time.perf_counter()
-            delta = received_radiosity(seen.form_factors, shot_power, self.reflectance, self.areas)
             ctx = ShotContext(self.mesh, shooter, seen.eye, self.form_factors.normals[shooter], seen.form_factors,
-                              delta, luminance(self.reflectance * shot_power) / self.areas, None, candidates)
+                              luminance(self.reflectance * shot_power) / self.areas, None, candidates)
             self.refine_seconds += time.perf_counter() - start
             ctx.jacobian, view = self._gradient(seen, ctx)
             start = time.perf_counter()

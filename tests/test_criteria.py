@@ -18,7 +18,7 @@ def context(mesh, shooter=0, **fields):
     T = mesh.num_elements
     base = dict(eye=torch.tensor([0.5, 0.5, 1.0], dtype=torch.float64),
                 normal=torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64),
-                form_factors=torch.zeros(T, dtype=torch.float64), received=torch.zeros(T, 3, dtype=torch.float64),
+                form_factors=torch.zeros(T, dtype=torch.float64),
                 luminance_per_form_factor=torch.ones(T, dtype=torch.float64), jacobian=None)
     base.update(fields)
     return ShotContext(mesh, shooter, **base)
@@ -64,9 +64,8 @@ def test_partial_visibility_scores_the_missing_part(grid):
 
 
 def test_neighbor_difference_flags_both_sides_of_a_step(grid):
-    step = (grid.centroids[:, 0] > 0.5).to(torch.float64)
-    received = step[:, None] * torch.tensor([1.0, 1.0, 1.0], dtype=torch.float64)
-    score = neighbor_difference_score(context(grid, received=received))
+    step = (grid.centroids[:, 0] > 0.5).to(torch.float64)  # F_sj; a white receiver of unit luminance per F
+    score = neighbor_difference_score(context(grid, form_factors=step, luminance_per_form_factor=luminance(ONE).expand(len(step))))
     near_step = (grid.centroids[:, 0] - 0.5).abs() < 0.25
     assert torch.allclose(score[near_step], luminance(ONE).expand(int(near_step.sum())))
     assert float(score[~near_step].abs().max()) == 0.0
@@ -75,3 +74,19 @@ def test_neighbor_difference_flags_both_sides_of_a_step(grid):
 def test_uniform_score_is_the_longest_edge(grid):
     score = uniform_score(context(grid))
     torch.testing.assert_close(score, torch.full_like(score, 0.25 * math.sqrt(2)))
+
+
+def test_every_criterion_scores_some_rows_as_it_scores_all(grid):
+    # The refiner scores only a pass's candidates; their scores must be those of the full pass.
+    from hemirad.criteria import CRITERIA
+
+    T = grid.num_elements
+    g = torch.Generator().manual_seed(5)
+    ctx = context(grid, form_factors=torch.rand(T, generator=g, dtype=torch.float64) * 0.01,
+                  luminance_per_form_factor=torch.rand(T, generator=g, dtype=torch.float64),
+                  jacobian=torch.randn(T, 3, generator=g, dtype=torch.float64))
+    rows = torch.tensor([3, 0, 17, T - 1])
+    for name, criterion in CRITERIA.items():
+        full = criterion.score(ctx, None)
+        assert full.shape == (T,) and full.abs().sum() > 0, name
+        torch.testing.assert_close(criterion.score(ctx, rows), full[rows], rtol=1e-14, atol=0, msg=name)

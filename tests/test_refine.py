@@ -151,10 +151,10 @@ def test_the_gradient_bound_holds_and_leaves_most_receivers_out_of_the_interior_
             F = element_form_factors(view.element, view.front, view.weight, mesh.num_elements)
             J = form_factor_gradient(view, ff.normals, ff.centroids, shadow_edges=False)  # the interior term
             power = torch.tensor([1.0, 1.0, 1.0], dtype=torch.float64)
-            ctx = ShotContext(mesh, shooter, view.eye, ff.normals[shooter], F, None,
+            ctx = ShotContext(mesh, shooter, view.eye, ff.normals[shooter], F,
                               luminance(reflectance * power) / mesh.areas, J)
             rows = torch.nonzero(F > 0).reshape(-1)
-            bound = gradient_score_bound(ctx, rows, view.distance)
+            bound = gradient_score_bound(ctx, rows, view.distance_of(rows))
             score = gradient_score(ctx)[rows]
             assert (score <= bound * (1 + 1e-12)).all()
             lit = score > 0  # (the lamp reflects nothing)
