@@ -8,7 +8,7 @@ from .display import luminance
 from .gradient import ShotView
 from .mesh import Mesh
 from .scene import RefineOptions
-from .split import hand_over_geometry, inherit, split_triangles, unbalanced
+from .split import hand_over_geometry, inherit, split_rows, unbalanced
 
 CHILDREN = {"pattern1": 3, "pattern2": 4}
 
@@ -45,13 +45,18 @@ class Refiner:
         """Which form-factor gradient the criterion needs: "full", "interior" or None."""
         return self.criterion.jacobian
 
-    def splittable(self, mesh: Mesh, shooter: int) -> torch.Tensor:
+    def splittable(self, mesh: Mesh, shooter: int, rows: torch.Tensor | None = None) -> torch.Tensor:
         """(T,) bool: the receivers a shot from ``shooter`` may split, whatever their score:
         under the depth limit, with children no smaller than ``min_area``, and not the
-        shooter (its own hemicube is being used)."""
+        shooter (its own hemicube is being used); among ``rows`` (R,) only, when given."""
         o = self.options
-        out = (mesh.level < o.max_depth) & (mesh.areas / self.children >= o.min_area)
-        out[shooter] = False
+        if rows is None:
+            out = (mesh.level < o.max_depth) & (mesh.areas / self.children >= o.min_area)
+            out[shooter] = False
+            return out
+        level, areas = mesh.level.index_select(0, rows), mesh.areas.index_select(0, rows)
+        out = torch.zeros(mesh.num_elements, dtype=torch.bool, device=rows.device)
+        out[rows[(level < o.max_depth) & (areas / self.children >= o.min_area) & (rows != shooter)]] = True
         return out
 
     def could_exceed(self, ctx: ShotContext, view: ShotView) -> torch.Tensor | None:
@@ -100,21 +105,22 @@ class Refiner:
         device = mesh.triangles.device
         parent = torch.arange(mesh.num_elements, device=device)
         before = mesh
-        while bool(selected.any()):
-            self.splits += int(selected.sum())
-            touched = torch.zeros(len(mesh.vertices), dtype=torch.bool, device=device)
-            touched[mesh.triangles[selected].reshape(-1)] = True
-            mesh, step = split_triangles(mesh, selected, self.options.pattern, geometry=False)
+        chosen = torch.nonzero(selected).reshape(-1)
+        while len(chosen):
+            self.splits += len(chosen)
+            V = len(mesh.vertices)
+            corners = mesh.triangles.index_select(0, chosen).reshape(-1)
+            mesh, step = split_rows(mesh, chosen, self.options.pattern, geometry=False)
             parent = inherit(parent, step)
             if self.options.pattern != "pattern2":
                 break
-            near = torch.cat([touched, torch.ones(len(mesh.vertices) - len(touched), dtype=torch.bool, device=device)])
-            selected = unbalanced(mesh, near)
+            # a new violation has a vertex of a split triangle (or a new one)
+            near = torch.ones(len(mesh.vertices), dtype=torch.bool, device=device)
+            near[:V] = False
+            near[corners] = True
+            chosen = unbalanced(mesh, near)
             room = (self.options.max_elements - mesh.num_elements) // (self.children - 1)
-            if int(selected.sum()) > room:  # the budget wins over grading
-                keep = torch.nonzero(selected).reshape(-1)[:max(room, 0)]
-                selected = torch.zeros_like(selected)
-                selected[keep] = True
+            chosen = chosen[:max(room, 0)]  # the budget wins over grading
         if mesh is not before:
             hand_over_geometry(before, mesh, parent)
         return mesh, parent

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import torch
 
 from .fastops import row_sums
-from .formfactor import sum_by_index
 from .mesh import Mesh
 from .split import inherit
 
@@ -37,15 +36,17 @@ class Descent:
     count: torch.Tensor
 
 
-def descendants(parent: torch.Tensor) -> Descent:
+def descendants(parent: torch.Tensor, split: torch.Tensor) -> Descent:
     """Map old elements to the new ones that lie in them.
 
     Args:
         parent: (T',) for every new element the old one it lies in (``Refiner.split``), the
             identity on its first T entries.
+        split: (K,) the old elements that were split, sorted (``unique(parent[T:])``).
     """
     count = torch.bincount(parent)
-    in_split = (inherit(count, parent) > 1).nonzero().reshape(-1)  # few: sort only these
+    T = len(count)
+    in_split = torch.cat([split, torch.arange(T, len(parent), device=parent.device)])  # ascending
     ordered = in_split.index_select(0, torch.argsort(parent.index_select(0, in_split), stable=True))
     split_count = torch.where(count > 1, count, 0)
     return Descent(parent, ordered, torch.cumsum(split_count, 0) - split_count, count)
@@ -113,8 +114,7 @@ def relabel_form_factors(form_factors: torch.Tensor, descent: Descent, element: 
     Returns:
         (T',)
     """
-    parent = descent.parent
-    unsplit = inherit(descent.count, parent) == 1
-    out = torch.where(unsplit, inherit(form_factors, parent), 0.0)
+    out = inherit(form_factors, descent.parent).index_fill_(0, descent.ordered, 0.0)
     pixels = split_pixels.index_select(0, front.index_select(0, split_pixels).nonzero().reshape(-1))
-    return out + sum_by_index(element.index_select(0, pixels), weight.index_select(0, pixels), len(parent))
+    # summed in pixel order from zero, as a bincount of the whole atlas sums them
+    return out.index_add_(0, element.index_select(0, pixels), weight.index_select(0, pixels))

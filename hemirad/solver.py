@@ -72,10 +72,12 @@ class Seen:
     form_factors: torch.Tensor
     changed: torch.Tensor | None = None
 
-    def relabelled(self, view: ShotView, parent: torch.Tensor, mesh: Mesh, weight: torch.Tensor) -> "Seen":
+    def relabelled(self, view: ShotView, parent: torch.Tensor, split: torch.Tensor, mesh: Mesh,
+                   weight: torch.Tensor) -> "Seen":
         """What the same hemicube sees after a split (``relabel.py``): ``parent`` (T',) maps
-        the new ``mesh``'s elements to the old ones; ``view`` is this pass's ShotView."""
-        descent = descendants(parent)
+        the new ``mesh``'s elements to the old ones, of which the (K,) sorted ``split`` were
+        split; ``view`` is this pass's ShotView."""
+        descent = descendants(parent, split)
         pixels = split_pixels_of(self.element, descent)
         element = relabel_atlas(self.element, view.hits(pixels), pixels, descent, mesh)
         form_factors = relabel_form_factors(self.form_factors, descent, element, self.front, weight, pixels)
@@ -195,20 +197,21 @@ class ProgressiveSolver:
         self.gradient_seconds += time.perf_counter() - start
         return J, view
 
-    def _split(self, selected: torch.Tensor, shooter: int) -> tuple[int, torch.Tensor, torch.Tensor]:
-        """Split the selected elements; children inherit B and dB.
+    def _split(self, selected: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Split the selected elements; children inherit B and dB. Every element keeps its
+        index (a split one's now holds its first child: ``split.split_triangles``).
 
         Returns:
-            the shooter's new index, (T',) bool marking the new elements, and (T',) the old
-            element each new one lies in.
+            (T',) the old element each new one lies in, and (K,) the old elements that were
+            split (the selected ones and those grading added), sorted.
         """
-        level = self.mesh.level
+        T = self.mesh.num_elements
         self.mesh, parent = self.refiner.split(self.mesh, selected)
         self.reflectance, self.emission = inherit(self.reflectance, parent), inherit(self.emission, parent)
         self.state.radiosity, self.state.unshot = inherit(self.state.radiosity, parent), inherit(self.state.unshot, parent)
         self.areas = self.mesh.areas
         self.form_factors.set_geometry(self.mesh)
-        return int(torch.nonzero(parent == shooter)[0]), self.mesh.level != inherit(level, parent), parent
+        return parent, torch.unique(parent[T:])
 
     def shoot(self) -> int | None:
         """One shot from the element with the largest unshot power; None when nothing is left.
@@ -247,12 +250,13 @@ class ProgressiveSolver:
                 if relabelled is not None:  # commit what a real render of the final mesh sees
                     seen = self._render(shooter)
                 break
-            old_shooter = shooter
-            shooter, new, parent = self._split(selected, shooter)
-            candidates = new & self.refiner.splittable(self.mesh, shooter)
+            T = self.mesh.num_elements
+            parent, split = self._split(selected)
+            new = torch.cat([split, torch.arange(T, len(parent), device=self.device)])  # their rows in the new mesh
+            candidates = self.refiner.splittable(self.mesh, shooter, new)
             relabelled = None
-            if self.relabel and bool((parent == old_shooter).sum() == 1):  # the eye has not moved
-                relabelled = seen.relabelled(view, parent, self.mesh, self.form_factors.weights.reshape(-1))
+            if self.relabel and not bool((split == shooter).any()):  # the eye has not moved
+                relabelled = seen.relabelled(view, parent, split, self.mesh, self.form_factors.weights.reshape(-1))
             self.refine_seconds += time.perf_counter() - start
         F = seen.form_factors
         delta = received_radiosity(F, shot_power, self.reflectance, self.areas)

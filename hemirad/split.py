@@ -177,13 +177,16 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str,
             cheaper, ``inherit(values, parent)``) carries per-element quantities such as
             radiosity over: value per unit area is unchanged, so power is conserved.
     """
-    if pattern not in PATTERNS:
-        raise ValueError(f"unknown split pattern {pattern!r}; expected one of {', '.join(PATTERNS)}")
     selected = torch.as_tensor(selected, dtype=torch.bool, device=mesh.triangles.device).reshape(-1)
     if len(selected) != mesh.num_elements:
         raise ValueError(f"need one flag per element ({mesh.num_elements}), got {len(selected)}")
+    return split_rows(mesh, torch.nonzero(selected).reshape(-1), pattern, geometry)
 
-    chosen = torch.nonzero(selected).reshape(-1)
+
+def split_rows(mesh: Mesh, chosen: torch.Tensor, pattern: str, geometry: bool = True) -> tuple[Mesh, torch.Tensor]:
+    """``split_triangles`` of the triangles ``chosen`` (n,), given as sorted indices."""
+    if pattern not in PATTERNS:
+        raise ValueError(f"unknown split pattern {pattern!r}; expected one of {', '.join(PATTERNS)}")
     split = _split_pattern1 if pattern == "pattern1" else _split_pattern2
     new_vertices, new_parents, children = split(mesh, chosen)
     per_parent = 3 if pattern == "pattern1" else 4
@@ -240,7 +243,7 @@ def inherit(values: torch.Tensor, parent: torch.Tensor) -> torch.Tensor:
 
 
 def unbalanced(mesh: Mesh, near: torch.Tensor | None = None) -> torch.Tensor:
-    """(T,) bool: triangles whose neighbours are more than one level finer across an edge.
+    """(n,) sorted: the triangles whose neighbours are more than one level finer across an edge.
 
     The 2:1 rule of graded meshes: an edge of a leaf may carry one midpoint, but that
     midpoint's half-edges may not be split again. A leaf that breaks it sits beside a much
@@ -252,9 +255,8 @@ def unbalanced(mesh: Mesh, near: torch.Tensor | None = None) -> torch.Tensor:
             (after a split, the vertices of the split triangles: a new violation has one).
     """
     find = midpoint_lookup(mesh)
-    out = torch.zeros(mesh.num_elements, dtype=torch.bool, device=mesh.triangles.device)
     if near is None:
-        candidates, triangles = torch.arange(mesh.num_elements, device=out.device), mesh.triangles
+        candidates, triangles = torch.arange(mesh.num_elements, device=mesh.triangles.device), mesh.triangles
     else:
         marked = near.index_select(0, mesh.triangles.reshape(-1)).reshape(-1, 3)
         candidates = torch.nonzero(marked[:, 0] | marked[:, 1] | marked[:, 2]).reshape(-1)
@@ -265,8 +267,7 @@ def unbalanced(mesh: Mesh, near: torch.Tensor | None = None) -> torch.Tensor:
     has = m >= 0
     m_safe = torch.where(has, m, a)
     nested = (has & ((find(a, m_safe) >= 0) | (find(m_safe, b) >= 0))).reshape(-1, 3)
-    out[candidates] = nested[:, 0] | nested[:, 1] | nested[:, 2]
-    return out
+    return candidates[torch.nonzero(nested[:, 0] | nested[:, 1] | nested[:, 2]).reshape(-1)]
 
 
 def largest_angles(mesh: Mesh) -> torch.Tensor:

@@ -13,7 +13,7 @@ from patches import refined_solve
 
 def test_descendants_group_new_elements_by_parent():
     parent = torch.tensor([0, 1, 2, 3, 1, 1, 3, 3, 3])  # as split_triangles makes it: 1 and 3 split
-    d = descendants(parent)
+    d = descendants(parent, torch.tensor([1, 3]))
     assert d.count.tolist() == [1, 3, 1, 4]
     assert d.ordered[d.start[1]:d.start[1] + 3].tolist() == [1, 4, 5]
     assert d.ordered[d.start[3]:d.start[3] + 4].tolist() == [3, 6, 7, 8]
@@ -34,7 +34,7 @@ def test_relabelled_atlas_is_the_new_render_but_for_a_few_edge_pixels():
         selected[lamp] = False
         new_mesh, parent = Refiner(scene.refine, emission).split(mesh, selected)  # with 2:1 grading
         assert int((parent == lamp).sum()) == 1
-        descent = descendants(parent)
+        descent = descendants(parent, torch.unique(parent[mesh.num_elements:]))
         pixels = split_pixels_of(view.element, descent)
         assert len(pixels) > 10000
         relabelled = relabel_atlas(view.element, view.hits(pixels), pixels, descent, new_mesh)

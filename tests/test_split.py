@@ -234,3 +234,19 @@ def test_geometry_handed_over_by_a_split_is_the_one_computed_afresh(pattern):
         assert torch.equal(value, getattr(fresh, name)), name
     rows = torch.tensor([0, 5, mesh.num_elements - 1])
     assert torch.equal(mesh.corners_of(rows), fresh.corners[rows]) and torch.equal(mesh.corners_of(3), fresh.corners[3])
+
+
+def test_a_leaf_beside_twice_split_neighbours_is_unbalanced():
+    from hemirad.split import unbalanced
+
+    square = _square()  # triangles 0 (0 1 2) and 1 (0 2 3) share the diagonal 0-2
+    once, _ = split_triangles(square, torch.tensor([True, False]), "pattern2")
+    assert unbalanced(once).tolist() == []  # one midpoint on the diagonal: 2:1 holds
+    # the child of triangle 0 at corner 0 has the half-diagonal 0-m on its border
+    at_corner = int(torch.nonzero((once.triangles == 0).any(1) & (once.level == 1))[0])
+    twice, _ = split_triangles(once, torch.arange(once.num_elements) == at_corner, "pattern2")
+    assert unbalanced(twice).tolist() == [1]  # triangle 1's edge now holds nested midpoints
+    near = torch.zeros(len(twice.vertices), dtype=torch.bool)
+    assert unbalanced(twice, near).tolist() == []  # only triangles touching ``near`` are examined
+    near[0] = True
+    assert unbalanced(twice, near).tolist() == [1]
