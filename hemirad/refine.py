@@ -8,7 +8,7 @@ from .display import luminance
 from .gradient import ShotView
 from .mesh import Mesh
 from .scene import RefineOptions
-from .split import hand_over_geometry, inherit, split_rows, unbalanced
+from .split import SplitRounds, hand_over_geometry
 
 CHILDREN = {"pattern1": 3, "pattern2": 4}
 
@@ -103,24 +103,24 @@ class Refiner:
             the new mesh, and (T',) the index in ``mesh`` each new element descends from.
         """
         device = mesh.triangles.device
-        parent = torch.arange(mesh.num_elements, device=device)
-        before = mesh
         chosen = torch.nonzero(selected).reshape(-1)
+        if len(chosen) == 0:
+            return mesh, torch.arange(mesh.num_elements, device=device)
+        rounds = SplitRounds(mesh, self.options.pattern, room=2 * len(chosen))  # grading adds some more
         while len(chosen):
             self.splits += len(chosen)
-            V = len(mesh.vertices)
-            corners = mesh.triangles.index_select(0, chosen).reshape(-1)
-            mesh, step = split_rows(mesh, chosen, self.options.pattern, geometry=False)
-            parent = inherit(parent, step)
+            V = rounds.num_vertices
+            corners = rounds.triangles.index_select(0, chosen).reshape(-1)
+            rounds.split(chosen)
             if self.options.pattern != "pattern2":
                 break
             # a new violation has a vertex of a split triangle (or a new one)
-            near = torch.ones(len(mesh.vertices), dtype=torch.bool, device=device)
+            near = torch.ones(rounds.num_vertices, dtype=torch.bool, device=device)
             near[:V] = False
             near[corners] = True
-            chosen = unbalanced(mesh, near)
-            room = (self.options.max_elements - mesh.num_elements) // (self.children - 1)
+            chosen = rounds.unbalanced(near)
+            room = (self.options.max_elements - rounds.num_elements) // (self.children - 1)
             chosen = chosen[:max(room, 0)]  # the budget wins over grading
-        if mesh is not before:
-            hand_over_geometry(before, mesh, parent)
-        return mesh, parent
+        new, parent = rounds.result()
+        hand_over_geometry(mesh, new, parent)
+        return new, parent

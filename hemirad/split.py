@@ -77,7 +77,11 @@ def midpoint_lookup(mesh: Mesh):
         indices (in either order) and giving, for each pair, the vertex whose
         ``edge_parents`` is that pair, or -1 where the edge has never been split.
     """
-    keys, mid_index = _midpoint_index(mesh)
+    return _lookup(*_midpoint_index(mesh))
+
+
+def _lookup(keys: torch.Tensor, mid_index: torch.Tensor):
+    """``midpoint_lookup`` over an index of sorted edge keys and their midpoints."""
 
     def find(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         query = _edge_keys(a, b)
@@ -89,13 +93,14 @@ def midpoint_lookup(mesh: Mesh):
     return find
 
 
-def _split_pattern1(mesh: Mesh, chosen: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _split_pattern1(vertices: torch.Tensor, triangles: torch.Tensor, chosen: torch.Tensor,
+                    find=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Centroid split of the triangles ``chosen`` (n,) -> new vertices (n, 3), their
     edge_parents (n, 2) and the children (3n, 3), grouped by parent."""
-    tri = mesh.triangles[chosen]  # (n, 3)
+    tri = triangles[chosen]  # (n, 3)
     n = len(tri)
-    new_vertices = mesh.vertices[tri].mean(dim=1)
-    c = len(mesh.vertices) + torch.arange(n, dtype=torch.int64, device=tri.device)
+    new_vertices = vertices[tri].mean(dim=1)
+    c = len(vertices) + torch.arange(n, dtype=torch.int64, device=tri.device)
     v0, v1, v2 = tri.unbind(dim=1)
     # Each child keeps one parent edge and replaces the opposite corner by the centroid,
     # so it is wound like the parent.
@@ -109,11 +114,13 @@ def _split_pattern1(mesh: Mesh, chosen: torch.Tensor) -> tuple[torch.Tensor, tor
     return new_vertices, new_parents, children
 
 
-def _split_pattern2(mesh: Mesh, chosen: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _split_pattern2(vertices: torch.Tensor, triangles: torch.Tensor, chosen: torch.Tensor,
+                    find) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Midpoint split of the triangles ``chosen`` (n,) -> new vertices (k, 3), their
-    edge_parents (k, 2) and the children (4n, 3), grouped by parent."""
-    num_vertices = len(mesh.vertices)
-    tri = mesh.triangles[chosen]  # (n, 3)
+    edge_parents (k, 2) and the children (4n, 3), grouped by parent; ``find`` is the
+    mesh's ``midpoint_lookup``."""
+    num_vertices = len(vertices)
+    tri = triangles[chosen]  # (n, 3)
     n = len(tri)
     # Edge e of a triangle runs from corner e to corner e + 1: (v0 v1), (v1 v2), (v2 v0).
     start = tri.reshape(-1)  # (3n,)
@@ -128,14 +135,14 @@ def _split_pattern2(mesh: Mesh, chosen: torch.Tensor) -> tuple[torch.Tensor, tor
 
     # Reuse a midpoint an earlier split made on the same edge (the neighbour was split
     # before); only the rest get new vertices.
-    existing = midpoint_lookup(mesh)(unique_lo, unique_hi)
+    existing = find(unique_lo, unique_hi)
     missing = existing < 0
     num_new = int(missing.sum())
     new_index = num_vertices + torch.arange(num_new, dtype=torch.int64, device=tri.device)
     mid_of_unique = existing.clone()
     mid_of_unique[missing] = new_index
     a, b = unique_lo[missing], unique_hi[missing]
-    new_vertices = 0.5 * (mesh.vertices[a] + mesh.vertices[b])
+    new_vertices = 0.5 * (vertices[a] + vertices[b])
     new_parents = torch.stack([a, b], dim=1)
 
     m = mid_of_unique[inverse].reshape(n, 3)  # (n, 3): m01, m12, m20
@@ -185,37 +192,122 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str,
 
 def split_rows(mesh: Mesh, chosen: torch.Tensor, pattern: str, geometry: bool = True) -> tuple[Mesh, torch.Tensor]:
     """``split_triangles`` of the triangles ``chosen`` (n,), given as sorted indices."""
-    if pattern not in PATTERNS:
-        raise ValueError(f"unknown split pattern {pattern!r}; expected one of {', '.join(PATTERNS)}")
-    split = _split_pattern1 if pattern == "pattern1" else _split_pattern2
-    new_vertices, new_parents, children = split(mesh, chosen)
-    per_parent = 3 if pattern == "pattern1" else 4
-    children = children.reshape(len(chosen), per_parent, 3)
-
-    T = mesh.num_elements
-    parent = torch.cat([torch.arange(T, device=chosen.device), chosen.repeat_interleave(per_parent - 1)])
-    triangles = torch.cat([mesh.triangles, children[:, 1:].reshape(-1, 3)])
-    triangles[chosen] = children[:, 0]
-    level = inherit(mesh.level, parent)
-    level[chosen] += 1
-    level[T:] += 1
-    out = Mesh(
-        vertices=torch.cat([mesh.vertices, new_vertices.to(mesh.vertices.dtype)]),
-        triangles=triangles,
-        surface=inherit(mesh.surface, parent),
-        material=inherit(mesh.material, parent),
-        surface_names=list(mesh.surface_names),
-        level=level,
-        edge_parents=torch.cat([mesh.edge_parents, new_parents]),
-    )
+    rounds = SplitRounds(mesh, pattern, room=len(chosen))
+    rounds.split(chosen)
+    out, parent = rounds.result()
     if geometry:
         hand_over_geometry(mesh, out, parent)
-    if "_midpoint_index" in mesh.__dict__:
-        new_midpoints = torch.nonzero(new_parents[:, 0] >= 0).reshape(-1)
-        out.__dict__["_midpoint_index"] = _merged_index(
-            mesh.__dict__["_midpoint_index"], _edge_keys(new_parents[new_midpoints, 0], new_parents[new_midpoints, 1]),
-            len(mesh.vertices) + new_midpoints)
     return out, parent
+
+
+class _Growing:
+    """A tensor with room to grow along its first dimension; ``values`` is the filled part."""
+
+    def __init__(self, values: torch.Tensor, room: int):
+        self.buffer = torch.empty((len(values) + room, *values.shape[1:]), dtype=values.dtype, device=values.device)
+        self.buffer[:len(values)] = values
+        self.size = len(values)
+
+    @property
+    def values(self) -> torch.Tensor:
+        return self.buffer[:self.size]
+
+    def append(self, rows: torch.Tensor) -> None:
+        need = self.size + len(rows)
+        if need > len(self.buffer):
+            bigger = torch.empty((need + need // 2, *self.buffer.shape[1:]), dtype=self.buffer.dtype,
+                                 device=self.buffer.device)
+            bigger[:self.size] = self.values
+            self.buffer = bigger
+        self.buffer[self.size:need] = rows
+        self.size = need
+
+
+class SplitRounds:
+    """A mesh split in rounds (a refiner's selection, then the triangles 2:1 grading adds),
+    each round splitting triangles of the previous one's result.
+
+    The mesh's arrays are copied once into buffers with room to grow, and every round writes
+    its children in place: the result is the one a chain of ``split_rows`` calls gives, bit
+    for bit, without copying the whole mesh per round.
+
+    Args:
+        mesh: the mesh before the first round; not modified.
+        pattern: as for ``split_triangles``.
+        room: how many triangles the rounds are expected to split (the buffers grow past it).
+    """
+
+    def __init__(self, mesh: Mesh, pattern: str, room: int = 0):
+        if pattern not in PATTERNS:
+            raise ValueError(f"unknown split pattern {pattern!r}; expected one of {', '.join(PATTERNS)}")
+        self.before, self.pattern = mesh, pattern
+        self.per_parent = 3 if pattern == "pattern1" else 4
+        device = mesh.triangles.device
+        new_triangles = room * (self.per_parent - 1)
+        new_vertices = room * (1 if pattern == "pattern1" else 3)
+        self._triangles = _Growing(mesh.triangles, new_triangles)
+        self._level = _Growing(mesh.level, new_triangles)
+        self._parent = _Growing(torch.arange(mesh.num_elements, device=device), new_triangles)
+        self._vertices = _Growing(mesh.vertices, new_vertices)
+        self._edge_parents = _Growing(mesh.edge_parents, new_vertices)
+        # the midpoint index, once needed (pattern 2 looks midpoints up; pattern 1 makes none)
+        self._index = mesh.__dict__.get("_midpoint_index")
+
+    @property
+    def num_elements(self) -> int:
+        return self._triangles.size
+
+    @property
+    def triangles(self) -> torch.Tensor:
+        """(T, 3) the current triangles (a view: the next round changes it)."""
+        return self._triangles.values
+
+    def midpoint_lookup(self):
+        """``midpoint_lookup`` of the current mesh."""
+        if self._index is None:
+            self._index = _midpoint_index(self.before)
+        return _lookup(*self._index)
+
+    def split(self, chosen: torch.Tensor) -> None:
+        """Split the current triangles ``chosen`` (n,), sorted indices."""
+        T, V = self._triangles.size, self._vertices.size
+        split = _split_pattern1 if self.pattern == "pattern1" else _split_pattern2
+        find = self.midpoint_lookup() if self.pattern == "pattern2" else None
+        new_vertices, new_parents, children = split(self._vertices.values, self._triangles.values, chosen, find)
+        children = children.reshape(len(chosen), self.per_parent, 3)
+        others = self.per_parent - 1
+        self._triangles.append(children[:, 1:].reshape(-1, 3))
+        self._triangles.buffer[chosen] = children[:, 0]
+        self._level.buffer[chosen] += 1
+        self._level.append(self._level.values.index_select(0, chosen).repeat_interleave(others))
+        self._parent.append(self._parent.values.index_select(0, chosen).repeat_interleave(others))
+        self._vertices.append(new_vertices.to(self._vertices.buffer.dtype))
+        self._edge_parents.append(new_parents)
+        new_midpoints = torch.nonzero(new_parents[:, 0] >= 0).reshape(-1)
+        if self._index is not None and len(new_midpoints):
+            self._index = _merged_index(
+                self._index, _edge_keys(new_parents[new_midpoints, 0], new_parents[new_midpoints, 1]),
+                V + new_midpoints)
+
+    def unbalanced(self, near: torch.Tensor | None = None) -> torch.Tensor:
+        """``unbalanced`` of the current mesh; ``near`` (V,) over its vertices."""
+        return _unbalanced(self.triangles, self.midpoint_lookup(), near)
+
+    @property
+    def num_vertices(self) -> int:
+        return self._vertices.size
+
+    def result(self) -> tuple[Mesh, torch.Tensor]:
+        """The split mesh and (T',) the triangle of the mesh before that each one lies in
+        (``split_triangles``' two results, for all the rounds together)."""
+        parent = self._parent.values
+        mesh = Mesh(vertices=self._vertices.values, triangles=self._triangles.values,
+                    surface=inherit(self.before.surface, parent), material=inherit(self.before.material, parent),
+                    surface_names=list(self.before.surface_names), level=self._level.values,
+                    edge_parents=self._edge_parents.values)
+        if self._index is not None:
+            mesh.__dict__["_midpoint_index"] = self._index
+        return mesh, parent
 
 
 def hand_over_geometry(old: Mesh, new: Mesh, parent: torch.Tensor) -> None:
@@ -254,13 +346,16 @@ def unbalanced(mesh: Mesh, near: torch.Tensor | None = None) -> torch.Tensor:
         near: (V,) bool, optional: only triangles with a vertex marked here are examined
             (after a split, the vertices of the split triangles: a new violation has one).
     """
-    find = midpoint_lookup(mesh)
+    return _unbalanced(mesh.triangles, midpoint_lookup(mesh), near)
+
+
+def _unbalanced(all_triangles: torch.Tensor, find, near: torch.Tensor | None) -> torch.Tensor:
     if near is None:
-        candidates, triangles = torch.arange(mesh.num_elements, device=mesh.triangles.device), mesh.triangles
+        candidates, triangles = torch.arange(len(all_triangles), device=all_triangles.device), all_triangles
     else:
-        marked = near.index_select(0, mesh.triangles.reshape(-1)).reshape(-1, 3)
+        marked = near.index_select(0, all_triangles.reshape(-1)).reshape(-1, 3)
         candidates = torch.nonzero(marked[:, 0] | marked[:, 1] | marked[:, 2]).reshape(-1)
-        triangles = mesh.triangles.index_select(0, candidates)
+        triangles = all_triangles.index_select(0, candidates)
     a = triangles.reshape(-1)
     b = torch.stack([triangles[:, 1], triangles[:, 2], triangles[:, 0]], dim=1).reshape(-1)
     m = find(a, b)
