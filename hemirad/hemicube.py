@@ -10,10 +10,10 @@ uses the same layout, so nothing is ever flipped. A pixel holds 0 where it sees 
 ``id + 1`` where it sees the front of element ``id``, and ``(id + 1) | BACK_FACE_BIT``
 where it sees its back (which occludes but receives nothing).
 
-Each face draws only the triangles that can reach its frustum (``face_visibility``): a
-triangle whose three vertices all lie outside one of the frustum's planes covers none of
-its pixels, so leaving it out changes no pixel, and each triangle is then drawn about once
-instead of five times. The kept triangles keep their relative order, so depth ties resolve
+Each face draws only the triangles that can reach its view cone (``face_visibility``): a
+triangle inside another face's cone, or below the horizon, covers none of its pixels, so
+leaving it out changes no pixel, and each triangle is then drawn about once instead of
+five times. The kept triangles keep their relative order, so depth ties resolve
 as in a full draw, and the item atlas is the one an unculled render gives, bit for bit.
 """
 from __future__ import annotations
@@ -94,44 +94,37 @@ def _frustum(left, right, bottom, top, near, far) -> np.ndarray:
     ])
 
 
-def _frustum_planes() -> tuple[np.ndarray, np.ndarray]:
-    """Inward normals, in the hemicube's local frame, of the planes through the eye that
-    bound each face's view: (5, 4, 3) for |right| <= forward and bottom <= up <= forward
-    (all in units of forward distance), and (5, 3) the forward axes for the near plane."""
-    sides, forwards = [], []
-    for forward, right, up, bottom in FACES:
-        f, r, u = (np.asarray(v, dtype=np.float64) for v in (forward, right, up))
-        sides.append([f - r, f + r, f - u, u - bottom * f])
-        forwards.append(f)
-    return np.asarray(sides), np.asarray(forwards)
-
-
-_SIDE_PLANES, _FORWARDS = _frustum_planes()
+_FORWARD_AXES = np.asarray([forward for forward, _, _, _ in FACES], dtype=np.float64)  # (5, 3)
+_FACE_NUMBERS = np.arange(len(FACES))[:, None]
+_BELOW = len(FACES)  # the region of a vertex below the horizon
 
 
 def face_visibility(local: np.ndarray, triangles: np.ndarray, near: float) -> np.ndarray:
     """Which triangles may cover pixels of each face: (5, T) bool.
 
-    A triangle is left out of a face when its three vertices all lie outside one plane of
-    that face's frustum (a side plane through the eye, or the near plane): the frustum is
-    convex, so such a triangle covers none of its pixels. Vertices must be clearly outside
-    (by a margin far above float32 rounding in GL's own clipping), so the test never drops
-    a triangle that GL would draw.
+    The faces' view cones (the directions whose largest component along the five face axes
+    is that face's) are convex and tile the half-space above the shooter. A triangle whose
+    three vertices lie inside one cone lies inside it, so only that face can see it; one
+    whose vertices all lie below the horizon is seen by none; any other (across cones, or
+    with a vertex within a margin of a cone's boundary) is drawn by every face. The margin
+    is far above float32 rounding in GL's own clipping, and a face's pixel centres lie half
+    a pixel inside its cone, so the test never drops a triangle that GL would draw. (Per
+    vertex it costs five dot products; clipping each face's frustum planes, twenty-five.)
 
     Args:
         local: (V, 3) float64 vertex positions relative to the eye, in the local frame.
         triangles: (T, 3) vertex indices.
-        near: the near-plane distance.
+        near: the near-plane distance (triangles nearer than it are kept: conservative).
     """
-    margin = 1e-5 * np.abs(local).sum(axis=1)  # (V,)
-    side = (local @ _SIDE_PLANES.reshape(-1, 3).T).reshape(-1, 5, 4) < -margin[:, None, None]  # (V, 5, 4)
-    behind = (local @ _FORWARDS.T) < near - margin[:, None]  # (V, 5)
-    outside = np.concatenate([side, behind[:, :, None]], axis=2)  # (V, 5, 5): face, plane
-    codes = np.packbits(outside.reshape(len(local), 25), axis=1, bitorder="little")  # (V, 4) uint8
-    codes = codes.view(np.uint32).reshape(-1)  # bit 5 f + k: outside plane k of face f
-    common = codes[triangles[:, 0]] & codes[triangles[:, 1]] & codes[triangles[:, 2]]  # (T,)
-    face_bits = np.uint32(0b11111) << (5 * np.arange(5, dtype=np.uint32))  # (5,)
-    return (common[None, :] & face_bits[:, None]) == 0
+    margin = 1e-5 * (np.abs(local) @ np.ones(3))  # (V,)
+    along = _FORWARD_AXES @ local.T  # (5, V); faces first: the reductions below run across rows
+    over = along > along.max(axis=0) - margin  # the axes within the margin of the largest
+    region = np.where(over.sum(axis=0) == 1, (_FACE_NUMBERS * over).sum(axis=0), -1)  # (V,) -1: on a boundary
+    region[local[:, 2] < -margin] = _BELOW
+    r = region.take(triangles)  # (T, 3)
+    first = r[:, 0]
+    everywhere = (first != r[:, 1]) | (first != r[:, 2]) | (first < 0)
+    return np.stack([everywhere | (first == f) for f in range(len(FACES))])
 
 
 class Hemicube:
