@@ -476,7 +476,8 @@ def form_factor_gradient(view: ShotView, normals: torch.Tensor, points: torch.Te
             The rows of the others then hold their shadow-edge term alone.
         mode: "reverse", one backward pass over per-term copies of the eye
             (``eye_gradients``), or "forward", ``torch.func.jacfwd`` with three tangents
-            (the paper's bottom-up mode): the same derivative, to rounding.
+            (the paper's bottom-up mode): the same derivative, to rounding. Under
+            ``torch.inference_mode`` the forward mode is used.
     """
     if mode not in ("reverse", "forward"):
         raise ValueError(f"mode must be 'reverse' or 'forward', not {mode!r}")
@@ -500,7 +501,7 @@ def form_factor_gradient(view: ShotView, normals: torch.Tensor, points: torch.Te
     # (index, terms) per term: each term's value is a function of the eye alone, summed by index
     parts = ([(patches.element, lambda c: interior_terms(c, patches))] if patches is not None else []) + \
             ([(pairs.far_element, lambda c: shadow_edge_terms(c, view, pairs))] if pairs is not None else [])
-    if mode == "forward":
+    if mode == "forward" or torch.is_inference_mode_enabled():  # inference mode allows no backward pass
         return jacfwd(lambda c: sum(summed_rows(index, terms(c), T) for index, terms in parts))(view.eye)
     J = torch.zeros(T, 3, dtype=torch.float64, device=view.eye.device)
     for index, terms in parts:

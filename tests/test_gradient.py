@@ -217,3 +217,14 @@ def test_an_unknown_differentiation_mode_is_refused():
     view, normals, points, _ = shot(EYES[0], [RECEIVER], resolution=16)
     with pytest.raises(ValueError, match="mode"):
         form_factor_gradient(view, normals, points, mode="sideways")
+
+
+def test_the_gradient_is_the_same_under_inference_mode():
+    # A caller may run a solve under torch.inference_mode, where no backward pass can run.
+    from hemirad.gradient import form_factor_gradient
+
+    view, normals, points, _ = shot(EYES[0], [RECEIVER, BLOCKER], resolution=32)
+    J = form_factor_gradient(view, normals, points)
+    with torch.inference_mode():  # everything made under it, as a solve under it would
+        J_inference = form_factor_gradient(*shot(EYES[0], [RECEIVER, BLOCKER], resolution=32)[:3])
+    torch.testing.assert_close(J_inference, J, rtol=1e-12, atol=1e-12 * float(J.abs().max()))
