@@ -108,7 +108,8 @@ def partial_visibility_score(ctx: ShotContext, rows: torch.Tensor | None = None)
     unoccluded = point_to_triangles(ctx.eye, ctx.normal, _corners(ctx, rows))
     form_factors = _rows(ctx.form_factors, rows)
     missing = (unoccluded - form_factors).clamp(min=0)
-    return torch.where(form_factors > 0, _rows(ctx.luminance_per_form_factor, rows) * missing, torch.zeros_like(missing))
+    luminance_per_form_factor = _rows(ctx.luminance_per_form_factor, rows)
+    return torch.where(form_factors > 0, luminance_per_form_factor * missing, torch.zeros_like(missing))
 
 
 def neighbor_difference_score(ctx: ShotContext, rows: torch.Tensor | None = None) -> torch.Tensor:

@@ -198,7 +198,8 @@ class ShotView:
     @cached_property
     def _all_hits(self) -> torch.Tensor:
         k = self.element.clamp(min=0)
-        return self._hits(k, self.distance.index_select(0, k), self.frame.T @ pixel_directions(self.resolution, self.eye.device))
+        directions = self.frame.T @ pixel_directions(self.resolution, self.eye.device)
+        return self._hits(k, self.distance.index_select(0, k), directions)
 
     def _hits(self, k: torch.Tensor, distance: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
         """(3, N) where the rays (3, N) ``directions`` from the eye meet the planes of the
@@ -262,7 +263,8 @@ class ReceiverPatches:
         normal = view.normals_of(element)
         shooter_normal = view.frame[2]
         patches = ReceiverPatches(view.eye, offset, element, normal, shooter_normal, shooter_normal @ offset,
-                                  (normal * offset).sum(0), (offset * offset).sum(0), view.weight.index_select(0, pixels))
+                                  (normal * offset).sum(0), (offset * offset).sum(0),
+                                  view.weight.index_select(0, pixels))
         patches.scale = patches.scale / point_to_patch_kernel(view.eye, patches)
         return patches
 

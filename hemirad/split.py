@@ -258,6 +258,10 @@ class SplitRounds:
         return self._triangles.size
 
     @property
+    def num_vertices(self) -> int:
+        return self._vertices.size
+
+    @property
     def triangles(self) -> torch.Tensor:
         """(T, 3) the current triangles (a view: the next round changes it)."""
         return self._triangles.values
@@ -270,7 +274,7 @@ class SplitRounds:
 
     def split(self, chosen: torch.Tensor) -> None:
         """Split the current triangles ``chosen`` (n,), sorted indices."""
-        T, V = self._triangles.size, self._vertices.size
+        V = self._vertices.size
         split = _split_pattern1 if self.pattern == "pattern1" else _split_pattern2
         find = self.midpoint_lookup() if self.pattern == "pattern2" else None
         new_vertices, new_parents, children = split(self._vertices.values, self._triangles.values, chosen, find)
@@ -293,13 +297,10 @@ class SplitRounds:
         """``unbalanced`` of the current mesh; ``near`` (V,) over its vertices."""
         return _unbalanced(self.triangles, self.midpoint_lookup(), near)
 
-    @property
-    def num_vertices(self) -> int:
-        return self._vertices.size
-
     def result(self) -> tuple[Mesh, torch.Tensor]:
         """The split mesh and (T',) the triangle of the mesh before that each one lies in
-        (``split_triangles``' two results, for all the rounds together)."""
+        (``split_triangles``' two results, for all the rounds together). The mesh holds
+        views of the buffers: no round may follow."""
         parent = self._parent.values
         mesh = Mesh(vertices=self._vertices.values, triangles=self._triangles.values,
                     surface=inherit(self.before.surface, parent), material=inherit(self.before.material, parent),

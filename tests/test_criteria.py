@@ -64,8 +64,9 @@ def test_partial_visibility_scores_the_missing_part(grid):
 
 
 def test_neighbor_difference_flags_both_sides_of_a_step(grid):
-    step = (grid.centroids[:, 0] > 0.5).to(torch.float64)  # F_sj; a white receiver of unit luminance per F
-    score = neighbor_difference_score(context(grid, form_factors=step, luminance_per_form_factor=luminance(ONE).expand(len(step))))
+    step = (grid.centroids[:, 0] > 0.5).to(torch.float64)  # F_sj, on white receivers
+    score = neighbor_difference_score(context(grid, form_factors=step,
+                                              luminance_per_form_factor=luminance(ONE).expand(len(step))))
     near_step = (grid.centroids[:, 0] - 0.5).abs() < 0.25
     assert torch.allclose(score[near_step], luminance(ONE).expand(int(near_step.sum())))
     assert float(score[~near_step].abs().max()) == 0.0

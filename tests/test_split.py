@@ -233,7 +233,8 @@ def test_geometry_handed_over_by_a_split_is_the_one_computed_afresh(pattern):
     for name, value in handed.items():
         assert torch.equal(value, getattr(fresh, name)), name
     rows = torch.tensor([0, 5, mesh.num_elements - 1])
-    assert torch.equal(mesh.corners_of(rows), fresh.corners[rows]) and torch.equal(mesh.corners_of(3), fresh.corners[3])
+    assert torch.equal(mesh.corners_of(rows), fresh.corners[rows])
+    assert torch.equal(mesh.corners_of(3), fresh.corners[3])
 
 
 def test_a_leaf_beside_twice_split_neighbours_is_unbalanced():
