@@ -179,8 +179,9 @@ class ShotView:
         return row_sums((self.points.index_select(0, k) - self.eye) * self.normals.index_select(0, k))
 
     def normals_of(self, k: torch.Tensor) -> torch.Tensor:
-        """(3, N) the normals of the (N,) elements ``k``, components first (contiguous)."""
-        return self.normals.index_select(0, k).T.contiguous()
+        """(3, N) the normals of the (N,) elements ``k``, components first (a transposed
+        view: the arithmetic on it is faster than copying it into that layout)."""
+        return self.normals.index_select(0, k).T
 
     def hits(self, pixels: torch.Tensor) -> torch.Tensor:
         """(3, N) the world points the given pixels (N,) see, components first.

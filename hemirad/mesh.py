@@ -89,6 +89,9 @@ class Mesh:
     def corners_of(self, index) -> torch.Tensor:
         """(..., 3, 3) the vertex positions of the triangles ``index`` (an int or an (R,)
         tensor), without computing every triangle's (``corners``)."""
+        if isinstance(index, torch.Tensor) and index.dim() == 1:  # index_select: several times faster
+            vertex = self.triangles.index_select(0, index).reshape(-1)
+            return self.vertices.index_select(0, vertex).reshape(len(index), 3, 3)
         return self.vertices[self.triangles[index]]
 
     _HANDED_OVER = ("centroids", "areas", "normals")
