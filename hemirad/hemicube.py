@@ -99,7 +99,7 @@ _FACE_NUMBERS = np.arange(len(FACES))[:, None]
 _BELOW = len(FACES)  # the region of a vertex below the horizon
 
 
-def face_visibility(local: np.ndarray, triangles: np.ndarray, near: float) -> np.ndarray:
+def face_visibility(local: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Which triangles may cover pixels of each face: (5, T) bool.
 
     The faces' view cones (the directions whose largest component along the five face axes
@@ -114,7 +114,6 @@ def face_visibility(local: np.ndarray, triangles: np.ndarray, near: float) -> np
     Args:
         local: (V, 3) float64 vertex positions relative to the eye, in the local frame.
         triangles: (T, 3) vertex indices.
-        near: the near-plane distance (triangles nearer than it are kept: conservative).
     """
     margin = 1e-5 * (np.abs(local) @ np.ones(3))  # (V,)
     along = _FORWARD_AXES @ local.T  # (5, V); faces first: the reductions below run across rows
@@ -188,13 +187,13 @@ class Hemicube:
         for obj in (self._vao, self._vbo, self._ibo, self.fbo, self._color, self._depth, self.program):
             obj.release()
 
-    def _draw_lists(self, eye: np.ndarray, frame: np.ndarray, near: float) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    def _draw_lists(self, eye: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
         """The triangles each face draws: their ids in drawing order (N,), and per face the
         (first, count) range of that list it draws."""
         T = self.num_triangles
         if not self.cull:
             return np.arange(T), [(0, T)] * len(FACES)
-        visible = face_visibility((self._vertices - eye) @ frame.T, self._triangles, near)
+        visible = face_visibility((self._vertices - eye) @ frame.T, self._triangles)
         ids = [np.flatnonzero(v) for v in visible]
         firsts = np.cumsum([0] + [len(i) for i in ids])
         ids = np.concatenate(ids)
@@ -216,7 +215,7 @@ class Hemicube:
         if self._pending is not None:
             self._upload()
         eye = np.asarray(eye, dtype=np.float64)
-        ids, ranges = self._draw_lists(eye, frame, near)
+        ids, ranges = self._draw_lists(eye, frame)
         ctx = self.ctx
         self.fbo.use()
         ctx.enable(moderngl.DEPTH_TEST)

@@ -55,16 +55,17 @@ def _local(points):
 
 
 def test_face_visibility_keeps_what_a_face_can_see_and_drops_the_rest():
-    near = 1e-3
     vertices = _local([
         [-0.2, -0.2, 1.0], [0.2, -0.2, 1.0], [0.0, 0.2, 1.0],     # straight up: top face only
         [1.0, -0.1, 0.2], [1.0, 0.1, 0.2], [1.0, 0.0, 0.4],       # towards +x, low: +x side only
         [0.0, 0.0, -1.0], [1.0, 0.0, -1.0], [0.0, 1.0, -1.0],     # below the horizon: no face
         [-1.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 0.0, 2.0],       # spans top, +x and -x
+        [1.0, 0.0, 1.0], [1.0, 0.1, 1.0], [1.0, -0.1, 1.0],       # on the top / +x seam: every face
     ])
-    triangles = np.arange(12).reshape(4, 3)
-    visible = face_visibility(vertices, triangles, near)
-    assert visible.shape == (len(FACES), 4)
+    triangles = np.arange(15).reshape(5, 3)
+    visible = face_visibility(vertices, triangles)
+    assert visible.shape == (len(FACES), 5)
+    assert visible[:, 4].all()
     assert visible[:, 0].tolist() == [True, False, False, False, False]
     assert visible[:, 1].tolist() == [False, True, False, False, False]
     assert not visible[:, 2].any()
@@ -75,7 +76,7 @@ def test_face_visibility_never_drops_a_triangle_with_a_vertex_inside_a_face():
     rng = np.random.default_rng(3)
     vertices = rng.normal(size=(3000, 3))
     triangles = rng.integers(0, len(vertices), size=(1000, 3))
-    visible = face_visibility(vertices, triangles, 1e-3)
+    visible = face_visibility(vertices, triangles)
     for f, (forward, right, up, bottom) in enumerate(FACES):
         depth = vertices @ np.asarray(forward, float)
         x, y = vertices @ np.asarray(right, float), vertices @ np.asarray(up, float)
