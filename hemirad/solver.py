@@ -14,6 +14,7 @@ import torch
 
 from .criteria import ShotContext
 from .display import luminance
+from .fastops import row_sums
 from .formfactor import HemicubeFormFactors, element_form_factors
 from .gl import GLContext
 from .gradient import ShotView, form_factor_gradient
@@ -228,7 +229,7 @@ class ProgressiveSolver:
         """
         state = self.state
         power = state.unshot * self.areas[:, None]  # (T, 3)
-        shooter = int(torch.argmax(power.sum(1)))
+        shooter = int(torch.argmax(row_sums(power)))
         shot_power = power[shooter].clone()
         if float(shot_power.sum()) <= 0.0:
             return None
