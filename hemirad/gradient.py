@@ -322,8 +322,7 @@ class OcclusionPairs:
     weight: torch.Tensor
 
 
-def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
-                    wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None,
+def occlusion_pairs(view: ShotView, wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None,
                     pixels: torch.Tensor | None = None) -> OcclusionPairs:
     """Find the 4-neighbour pixel pairs within one face that straddle an occluding edge.
 
@@ -335,7 +334,6 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
 
     Args:
         view: one render.
-        normals, points: (T, 3) element unit normals and points on their planes.
         wanted: (T,) bool, optional: only pairs whose farther element is marked.
         plane_ids: (T,) int64, optional (``Mesh.plane_ids``): pairs on one plane are
             dropped before the plane tests, which would reject them anyway.
@@ -368,8 +366,8 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
     # Without plane ids most such pairs are coplanar neighbours on a finely meshed surface:
     # the plane tests run over all of them, in components-first layout.
     def side(X, k):  # signed distance of X (3, K) from element k's plane, positive on the eye's side
-        n, p = view.normals_of(k), points.index_select(0, k).T
-        return (n * (X - p)).sum(0) * torch.sign((n * (view.eye[:, None] - p)).sum(0))
+        n, p = view.normals_of(k), view.points.index_select(0, k).T
+        return (n * (X - p)).sum(0) * -torch.sign(view.distance_of(k))
 
     Xa, Xb = view.hits(a), view.hits(b)  # (3, K)
     da2 = ((Xa - view.eye[:, None]) ** 2).sum(0)
@@ -398,8 +396,7 @@ def occlusion_pairs(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
     ray = 0.5 * to_near / to_near.norm(dim=1, keepdim=True) + 0.5 * to_far / to_far.norm(dim=1, keepdim=True)
 
     def on_plane(k):
-        n = normals[k]
-        return view.eye + (((points[k] - view.eye) * n).sum(1) / (ray * n).sum(1))[:, None] * ray
+        return view.eye + (view.distance_of(k) / row_sums(ray * view.normals.index_select(0, k)))[:, None] * ray
 
     weight = 0.5 * (view.weight[near] + view.weight[far])
     return OcclusionPairs(on_plane(en), on_plane(ef), ef, axis, pixel_faces(R, view.eye.device)[near // R], weight)
@@ -458,15 +455,14 @@ def eye_gradients(terms, eye: torch.Tensor, count: int) -> torch.Tensor:
     return gradient.T
 
 
-def form_factor_gradient(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
-                         interior: bool = True, shadow_edges: bool = True,
+def form_factor_gradient(view: ShotView, interior: bool = True, shadow_edges: bool = True,
                          wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None,
                          pixels: torch.Tensor | None = None,
                          interior_wanted: torch.Tensor | None = None, mode: str = "reverse") -> torch.Tensor:
     """dF_sj/dc for every element, by autograd: (T, 3).
 
     Args:
-        view: one render; normals, points: (T, 3) element planes.
+        view: one render.
         interior, shadow_edges: which terms to include (for accuracy studies).
         wanted: (T,) bool, optional: the elements whose gradient is needed. Only their
             pixels and edges enter the differentiated function, so the cost follows their
@@ -484,8 +480,8 @@ def form_factor_gradient(view: ShotView, normals: torch.Tensor, points: torch.Te
     """
     if mode not in ("reverse", "forward"):
         raise ValueError(f"mode must be 'reverse' or 'forward', not {mode!r}")
-    T = len(normals)
-    pairs = occlusion_pairs(view, normals, points, wanted, plane_ids, pixels) if shadow_edges else None
+    T = len(view.normals)
+    pairs = occlusion_pairs(view, wanted, plane_ids, pixels) if shadow_edges else None
     if interior_wanted is not None:
         if pairs is not None:
             interior_wanted = interior_wanted.clone()
@@ -512,11 +508,10 @@ def form_factor_gradient(view: ShotView, normals: torch.Tensor, points: torch.Te
     return J
 
 
-def form_factor_jacobian(view: ShotView, normals: torch.Tensor, points: torch.Tensor,
-                         interior: bool = True, shadow_edges: bool = True,
+def form_factor_jacobian(view: ShotView, interior: bool = True, shadow_edges: bool = True,
                          wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None
                          ) -> tuple[torch.Tensor, torch.Tensor]:
     """F_sj (T,), the hemicube form factors of every element, and their gradient J (T, 3)
     with respect to the eye (``form_factor_gradient``, same arguments)."""
-    F = element_form_factors(view.element, view.front, view.weight, len(normals))
-    return F, form_factor_gradient(view, normals, points, interior, shadow_edges, wanted, plane_ids)
+    F = element_form_factors(view.element, view.front, view.weight, len(view.normals))
+    return F, form_factor_gradient(view, interior, shadow_edges, wanted, plane_ids)

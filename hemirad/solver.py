@@ -191,7 +191,7 @@ class ProgressiveSolver:
         J = None
         if wanted is not None:
             options = self.refiner.options
-            J = form_factor_gradient(view, ff.normals, ff.centroids, interior=options.interior or wanted == "interior",
+            J = form_factor_gradient(view, interior=options.interior or wanted == "interior",
                                      shadow_edges=options.shadow_edges and wanted == "full", wanted=ctx.candidates,
                                      plane_ids=self.mesh.plane_ids, pixels=seen.changed,
                                      interior_wanted=self.refiner.could_exceed(ctx, view) if self.bound else None)

@@ -24,7 +24,7 @@ def rectangle(x0, x1, y0, y1, z, angle=0.0, centre=(0.0, 0.0)):
 
 def shot(point, polygons, resolution=256):
     """Render from a tiny upward-facing source at ``point``; the other polygons are meshed
-    as two triangles each. Returns the render's view, the planes and the element ranges."""
+    as two triangles each. Returns the render's view and the element ranges."""
     h = 1e-3
     p = np.asarray(point, dtype=np.float64)
     vertices = [np.array([p + [h, 0, 0], p + [-h / 2, h, 0], p + [-h / 2, -h, 0]])]
@@ -41,7 +41,7 @@ def shot(point, polygons, resolution=256):
     finally:
         ff.close()
     view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
-    return view, ff.normals, ff.centroids, ranges
+    return view, ranges
 
 
 def lambert_gradient(eye, receiver, blockers=()):
@@ -66,9 +66,9 @@ EYES = [np.array([*rng.uniform(-0.2, 0.2, 2), 0.0]) for _ in range(4)]
 
 
 def test_interior_gradient_equals_finite_differences_of_the_same_function():
-    view, normals, points, ranges = shot(EYES[0], [RECEIVER, BLOCKER], resolution=64)
-    T = len(normals)
-    _, J = form_factor_jacobian(view, normals, points, interior=True, shadow_edges=False)
+    view, ranges = shot(EYES[0], [RECEIVER, BLOCKER], resolution=64)
+    T = len(view.normals)
+    _, J = form_factor_jacobian(view, interior=True, shadow_edges=False)
     patches = ReceiverPatches.from_view(view)
     step = 1e-5
     for axis in range(3):
@@ -80,16 +80,16 @@ def test_interior_gradient_equals_finite_differences_of_the_same_function():
 
 
 def test_value_is_the_hemicube_form_factor():
-    view, normals, points, _ = shot(EYES[1], [RECEIVER, BLOCKER], resolution=64)
-    F, _ = form_factor_jacobian(view, normals, points)
-    hemicube = torch.bincount(view.element[view.front], view.weight[view.front], minlength=len(normals))
+    view, _ = shot(EYES[1], [RECEIVER, BLOCKER], resolution=64)
+    F, _ = form_factor_jacobian(view)
+    hemicube = torch.bincount(view.element[view.front], view.weight[view.front], minlength=len(view.normals))
     torch.testing.assert_close(F, hemicube, rtol=1e-12, atol=1e-15)
 
 
 @pytest.mark.parametrize("eye", EYES)
 def test_unoccluded_gradient_matches_lambert(eye):
-    view, normals, points, (receiver,) = shot(eye, [RECEIVER])
-    _, J = form_factor_jacobian(view, normals, points)
+    view, (receiver,) = shot(eye, [RECEIVER])
+    _, J = form_factor_jacobian(view)
     _, reference = lambert_gradient(view.eye, RECEIVER)
     assert relative_error(J[receiver].sum(0), reference) < 0.02
 
@@ -108,10 +108,10 @@ def test_shadow_edge_term_makes_the_gradient_see_the_blocker(case):
     receiver_polygon, blocker_polygon = BLOCKED_CASES[case]
     for eye in EYES:
         eye = eye * (0.25 if "seam" in case else 1.0)
-        view, normals, points, (receiver, _) = shot(eye, [receiver_polygon, blocker_polygon])
+        view, (receiver, _) = shot(eye, [receiver_polygon, blocker_polygon])
         F_value, reference = lambert_gradient(view.eye, receiver_polygon, [blocker_polygon])
-        F, J = form_factor_jacobian(view, normals, points)
-        _, J_interior = form_factor_jacobian(view, normals, points, shadow_edges=False)
+        F, J = form_factor_jacobian(view)
+        _, J_interior = form_factor_jacobian(view, shadow_edges=False)
         assert float(F[receiver].sum()) == pytest.approx(F_value, rel=0.01)
         assert relative_error(J[receiver].sum(0), reference) < 0.10
         assert relative_error(J_interior[receiver].sum(0), reference) > 0.50
@@ -120,11 +120,11 @@ def test_shadow_edge_term_makes_the_gradient_see_the_blocker(case):
 def test_gradient_of_some_elements_is_their_rows_of_the_full_gradient():
     # The solver's later passes ask only for the new elements' gradients: the restricted
     # computation must give exactly those rows (and the full F).
-    view, normals, points, ranges = shot(EYES[1], [RECEIVER, BLOCKER], resolution=64)
-    F_full, J_full = form_factor_jacobian(view, normals, points)
-    wanted = torch.zeros(len(normals), dtype=torch.bool)
+    view, ranges = shot(EYES[1], [RECEIVER, BLOCKER], resolution=64)
+    F_full, J_full = form_factor_jacobian(view)
+    wanted = torch.zeros(len(view.normals), dtype=torch.bool)
     wanted[ranges[0]] = True  # the receiver, with the blocker's shadow edge on it
-    F, J = form_factor_jacobian(view, normals, points, wanted=wanted)
+    F, J = form_factor_jacobian(view, wanted=wanted)
     assert torch.equal(F, F_full)
     assert J_full[wanted].abs().sum() > 0 and J_full[~wanted].abs().sum() > 0
     torch.testing.assert_close(J[wanted], J_full[wanted], rtol=1e-12, atol=1e-15)
@@ -155,10 +155,10 @@ def test_plane_ids_change_no_gradient_and_mark_planar_surfaces():
     finally:
         ff.close()
     view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
-    F, J = form_factor_jacobian(view, ff.normals, ff.centroids)
-    F_ids, J_ids = form_factor_jacobian(view, ff.normals, ff.centroids, plane_ids=split.plane_ids)
+    F, J = form_factor_jacobian(view)
+    F_ids, J_ids = form_factor_jacobian(view, plane_ids=split.plane_ids)
     assert torch.equal(F, F_ids) and torch.equal(J, J_ids)
-    assert len(occlusion_pairs(view, ff.normals, ff.centroids).far_element) > 0  # the board's shadow edge
+    assert len(occlusion_pairs(view).far_element) > 0  # the board's shadow edge
 
 
 def test_a_curved_surface_gives_each_element_its_own_plane_id():
@@ -201,12 +201,12 @@ def test_one_backward_pass_gives_the_forward_mode_jacobian(terms):
     from hemirad.gradient import form_factor_gradient
 
     for eye in EYES[:2]:
-        view, normals, points, ranges = shot(eye, [RECEIVER, BLOCKER], resolution=64)
-        wanted = torch.zeros(len(normals), dtype=torch.bool)
+        view, ranges = shot(eye, [RECEIVER, BLOCKER], resolution=64)
+        wanted = torch.zeros(len(view.normals), dtype=torch.bool)
         wanted[ranges[0]] = True
         for restricted in (None, wanted):
-            J = form_factor_gradient(view, normals, points, wanted=restricted, **terms)
-            J_forward = form_factor_gradient(view, normals, points, wanted=restricted, mode="forward", **terms)
+            J = form_factor_gradient(view, wanted=restricted, **terms)
+            J_forward = form_factor_gradient(view, wanted=restricted, mode="forward", **terms)
             assert J_forward.abs().max() > 0
             torch.testing.assert_close(J, J_forward, rtol=1e-12, atol=1e-12 * float(J_forward.abs().max()))
 
@@ -214,17 +214,17 @@ def test_one_backward_pass_gives_the_forward_mode_jacobian(terms):
 def test_an_unknown_differentiation_mode_is_refused():
     from hemirad.gradient import form_factor_gradient
 
-    view, normals, points, _ = shot(EYES[0], [RECEIVER], resolution=16)
+    view, _ = shot(EYES[0], [RECEIVER], resolution=16)
     with pytest.raises(ValueError, match="mode"):
-        form_factor_gradient(view, normals, points, mode="sideways")
+        form_factor_gradient(view, mode="sideways")
 
 
 def test_the_gradient_is_the_same_under_inference_mode():
     # A caller may run a solve under torch.inference_mode, where no backward pass can run.
     from hemirad.gradient import form_factor_gradient
 
-    view, normals, points, _ = shot(EYES[0], [RECEIVER, BLOCKER], resolution=32)
-    J = form_factor_gradient(view, normals, points)
+    view, _ = shot(EYES[0], [RECEIVER, BLOCKER], resolution=32)
+    J = form_factor_gradient(view)
     with torch.inference_mode():  # everything made under it, as a solve under it would
-        J_inference = form_factor_gradient(*shot(EYES[0], [RECEIVER, BLOCKER], resolution=32)[:3])
+        J_inference = form_factor_gradient(shot(EYES[0], [RECEIVER, BLOCKER], resolution=32)[0])
     torch.testing.assert_close(J_inference, J, rtol=1e-12, atol=1e-12 * float(J.abs().max()))

@@ -152,7 +152,7 @@ def test_the_gradient_bound_holds_and_leaves_most_receivers_out_of_the_interior_
             element, front, eye, frame = ff.render(shooter)
             view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
             F = element_form_factors(view.element, view.front, view.weight, mesh.num_elements)
-            J = form_factor_gradient(view, ff.normals, ff.centroids, shadow_edges=False)  # the interior term
+            J = form_factor_gradient(view, shadow_edges=False)  # the interior term
             power = torch.tensor([1.0, 1.0, 1.0], dtype=torch.float64)
             ctx = ShotContext(mesh, shooter, view.eye, ff.normals[shooter], F,
                               luminance(reflectance * power) / mesh.areas, J)
