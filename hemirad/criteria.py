@@ -83,7 +83,7 @@ def gradient_score_bound(ctx: ShotContext, rows: torch.Tensor, distance: torch.T
     rate = torch.where(lowest > 0, 1.0 / lowest.clamp(min=1e-300) + 5.0 / height, torch.inf)
     shooter = ctx.mesh.corners_of(ctx.shooter)
     reach = (shooter - shooter.mean(0)).norm(dim=1).max()  # max_k |P_k - G|
-    return ctx.luminance_per_form_factor[rows] * ctx.form_factors[rows] * rate * reach
+    return _rows(ctx.luminance_per_form_factor, rows) * _rows(ctx.form_factors, rows) * rate * reach
 
 
 def receiver_score(ctx: ShotContext, rows: torch.Tensor | None = None) -> torch.Tensor:

@@ -45,7 +45,6 @@ def select_device(name: str) -> torch.device:
         if device.index is not None and device.index >= torch.cuda.device_count():
             raise HemiradInputError(f"device {name!r} was asked for, but this machine has "
                                     f"{torch.cuda.device_count()} CUDA device(s), numbered from 0.")
-    if device.type == "cuda":
         # cuBLAS sums in a fixed order only with this workspace setting, which must be made
         # before its first use; solves run in PyTorch's deterministic mode (runtime.py).
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")

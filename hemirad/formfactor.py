@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import time
+
 import numpy as np
 import torch
 
@@ -111,7 +112,7 @@ class HemicubeFormFactors:
     Args:
         mesh: the elements (triangles counter-clockwise seen from the front).
         resolution: hemicube resolution R.
-        cull: draw each hemicube face only the triangles in its frustum (same result, faster).
+        cull: draw each hemicube face only the triangles that can reach it (same result, faster).
         device: where the torch work runs (the mesh's tensors must be there); on CUDA the
             OpenGL context must be on the GPU too (``GLContext.get(gpu=True)``).
     Attributes:

@@ -131,7 +131,7 @@ class Hemicube:
 
     Args:
         resolution: R, the top face's width in pixels (even).
-        cull: leave out of each face the triangles outside its frustum (the default). The
+        cull: leave out of each face the triangles outside its view cone (the default). The
             atlas is the same without it (every face then draws every triangle); the
             option exists to show that.
         gpu: draw with the process's GPU context (``GLContext.get(gpu=True)``).

@@ -110,10 +110,10 @@ class Mesh:
         names = [name for name in self._HANDED_OVER if name in old.__dict__]
         if not names:
             return
-        triangles = self.triangles.index_select(0, rows)
-        cross = _cross(self.vertices[triangles])
-        fresh = {"centroids": lambda: _centroids(self.vertices, triangles), "areas": lambda: _area(cross),
-                 "normals": lambda: _unit(cross)}
+        corners = self.corners_of(rows)
+        cross = _cross(corners)
+        fresh = {"centroids": lambda: (corners[:, 0] + corners[:, 1] + corners[:, 2]) / 3.0,
+                 "areas": lambda: _area(cross), "normals": lambda: _unit(cross)}
         for name in names:
             before = old.__dict__[name]
             merged = torch.empty((self.num_elements, *before.shape[1:]), dtype=before.dtype, device=before.device)

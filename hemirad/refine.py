@@ -59,6 +59,12 @@ class Refiner:
         out[rows[(level < o.max_depth) & (areas / self.children >= o.min_area) & (rows != shooter)]] = True
         return out
 
+    def _candidates(self, ctx: ShotContext) -> tuple[torch.Tensor, torch.Tensor]:
+        """(T,) bool the pass's candidates (every ``splittable`` receiver when it names none)
+        and (R,) their indices."""
+        candidates = self.splittable(ctx.mesh, ctx.shooter) if ctx.candidates is None else ctx.candidates
+        return candidates, torch.nonzero(candidates).reshape(-1)
+
     def could_exceed(self, ctx: ShotContext, view: ShotView) -> torch.Tensor | None:
         """(T,) bool: the pass's candidates whose score's interior part may pass the threshold
         (the criterion's ``interior_bound``), the only ones whose interior Jacobian is needed;
@@ -69,8 +75,7 @@ class Refiner:
         """
         if self.criterion.interior_bound is None:
             return None
-        candidates = self.splittable(ctx.mesh, ctx.shooter) if ctx.candidates is None else ctx.candidates
-        rows = torch.nonzero(candidates).reshape(-1)
+        candidates, rows = self._candidates(ctx)
         out = torch.zeros_like(candidates)
         # with room for rounding: an element at the threshold keeps its exact score
         out[rows] = self.criterion.interior_bound(ctx, rows, view.distance_of(rows)) * (1.0 + 1e-9) > self.threshold
@@ -81,8 +86,7 @@ class Refiner:
         every ``splittable`` one), largest first when the element budget binds (it is never
         exceeded)."""
         mesh, o = ctx.mesh, self.options
-        candidates = self.splittable(mesh, ctx.shooter) if ctx.candidates is None else ctx.candidates
-        rows = torch.nonzero(candidates).reshape(-1)
+        candidates, rows = self._candidates(ctx)
         score = self.criterion.score(ctx, rows)
         over = score > self.threshold
         rows, score = rows[over], score[over]

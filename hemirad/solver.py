@@ -133,7 +133,7 @@ class ProgressiveSolver:
             committed with a real render of the final mesh.
         bound: leave out of the interior Jacobian the receivers whose criterion bounds that
             part of their score under the threshold (``Refiner.could_exceed``): the same
-            splits, with less forward-mode work.
+            splits, with less autograd work.
         device: where the tensors live and the torch work runs (``device.select_device``);
             on CUDA the hemicubes are drawn by the GPU's OpenGL context. The inputs may be
             anywhere; ``state_dict`` is always on the CPU.

@@ -159,8 +159,7 @@ def _split_pattern2(vertices: torch.Tensor, triangles: torch.Tensor, chosen: tor
     return new_vertices, new_parents, children
 
 
-def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str,
-                    geometry: bool = True) -> tuple[Mesh, torch.Tensor]:
+def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[Mesh, torch.Tensor]:
     """Split the selected triangles with one of the paper's two patterns.
 
     Args:
@@ -169,8 +168,6 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str,
         pattern: ``"pattern1"`` (centroid, 1 -> 3 children (v0 v1 c), (v1 v2 c), (v2 v0 c))
             or ``"pattern2"`` (edge midpoints, 1 -> 4 children (v0 m01 m20),
             (m01 v1 m12), (m20 m12 v2), (m01 m12 m20)).
-        geometry: hand over the geometry and plane ids ``mesh`` has computed (False when
-            more splits follow at once: ``hand_over_geometry`` then does it once).
 
     Returns:
         mesh: the new mesh. Its vertices are the old ones (same indices) followed by the
@@ -187,16 +184,11 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str,
     selected = torch.as_tensor(selected, dtype=torch.bool, device=mesh.triangles.device).reshape(-1)
     if len(selected) != mesh.num_elements:
         raise ValueError(f"need one flag per element ({mesh.num_elements}), got {len(selected)}")
-    return split_rows(mesh, torch.nonzero(selected).reshape(-1), pattern, geometry)
-
-
-def split_rows(mesh: Mesh, chosen: torch.Tensor, pattern: str, geometry: bool = True) -> tuple[Mesh, torch.Tensor]:
-    """``split_triangles`` of the triangles ``chosen`` (n,), given as sorted indices."""
+    chosen = torch.nonzero(selected).reshape(-1)
     rounds = SplitRounds(mesh, pattern, room=len(chosen))
     rounds.split(chosen)
     out, parent = rounds.result()
-    if geometry:
-        hand_over_geometry(mesh, out, parent)
+    hand_over_geometry(mesh, out, parent)
     return out, parent
 
 
@@ -228,8 +220,8 @@ class SplitRounds:
     each round splitting triangles of the previous one's result.
 
     The mesh's arrays are copied once into buffers with room to grow, and every round writes
-    its children in place: the result is the one a chain of ``split_rows`` calls gives, bit
-    for bit, without copying the whole mesh per round.
+    its children in place: the result is the one a chain of ``split_triangles`` calls gives,
+    bit for bit, without copying the whole mesh per round.
 
     Args:
         mesh: the mesh before the first round; not modified.
