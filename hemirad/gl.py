@@ -106,7 +106,7 @@ def _load_triton_first() -> None:
     PyTorch's CUDA wheels bring triton, which links another LLVM. Imported after llvmpipe has
     loaded LLVM 15, triton's native module crashes the process (seen with torch 2.15 and Mesa
     22.3); imported before, both work. torch.func imports it lazily (through torch._dynamo)
-    on the first forward-mode transform, which comes after the context is made.
+    on its first transform (jacfwd), which may come after the context is made.
     """
     if importlib.util.find_spec("triton") is not None:
         import triton  # noqa: F401

@@ -7,7 +7,7 @@ against element count. For reading, never for asserting.
    hemicube 256, the gradient criterion at ``--threshold`` (chosen so that the mesh ends near
    the paper's 94,791 elements). Prints wall time, seconds per shot split into raster
    (culling and drawing), read-back, form factors + AD (decoding, hit points, the
-   forward-mode Jacobian), refinement (criterion, selection, splitting, re-upload) and
+   Jacobian), refinement (criterion, selection, splitting, re-upload) and
    update, and the peak resident memory; then where the time goes inside (the same solve
    again under cProfile: the functions with the most time of their own), so that the
    next bottleneck is visible.
