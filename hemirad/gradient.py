@@ -263,11 +263,11 @@ class ReceiverPatches:
         offset = view.hits(pixels) - view.eye[:, None]
         normal = view.normals_of(element)
         shooter_normal = view.frame[2]
-        patches = ReceiverPatches(view.eye, offset, element, normal, shooter_normal, shooter_normal @ offset,
-                                  (normal * offset).sum(0), (offset * offset).sum(0),
-                                  view.weight.index_select(0, pixels))
-        patches.scale = patches.scale / point_to_patch_kernel(view.eye, patches)
-        return patches
+        facing, receiver_facing, distance2 = shooter_normal @ offset, (normal * offset).sum(0), (offset * offset).sum(0)
+        # point_to_patch_kernel at c = c0, where d = 0 leaves these three terms exactly (same numbers)
+        kernel = facing * -receiver_facing / (distance2 * distance2)
+        return ReceiverPatches(view.eye, offset, element, normal, shooter_normal, facing, receiver_facing, distance2,
+                               view.weight.index_select(0, pixels) / kernel)
 
 
 def point_to_patch_kernel(c: torch.Tensor, patches: ReceiverPatches) -> torch.Tensor:

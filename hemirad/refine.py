@@ -8,7 +8,7 @@ from .display import luminance
 from .gradient import ShotView
 from .mesh import Mesh
 from .scene import RefineOptions
-from .split import SplitRounds, hand_over_geometry
+from .split import SplitRounds
 
 CHILDREN = {"pattern1": 3, "pattern2": 4}
 
@@ -125,6 +125,4 @@ class Refiner:
             chosen = rounds.unbalanced(near)
             room = (self.options.max_elements - rounds.num_elements) // (self.children - 1)
             chosen = chosen[:max(room, 0)]  # the budget wins over grading
-        new, parent = rounds.result()
-        hand_over_geometry(mesh, new, parent)
-        return new, parent
+        return rounds.result()

@@ -198,6 +198,13 @@ class ProgressiveSolver:
         self.gradient_seconds += time.perf_counter() - start
         return J, view
 
+    def _luminance_per_form_factor(self, shot_power: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """(T,) or (R,) for ``rows``: the luminance of what a receiver gets per unit F_sj from
+        ``shot_power`` (3,), rho_j dB_s A_s / A_j; a child's differs from its parent's by its area."""
+        if rows is None:
+            return luminance(self.reflectance * shot_power) / self.areas
+        return luminance(self.reflectance.index_select(0, rows) * shot_power) / self.areas.index_select(0, rows)
+
     def _split(self, selected: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Split the selected elements; children inherit B and dB. Every element keeps its
         index (a split one's now holds its first child: ``split.split_triangles``).
@@ -234,6 +241,7 @@ class ProgressiveSolver:
         if float(shot_power.sum()) <= 0.0:
             return None
         candidates = None if self.refiner is None else self.refiner.splittable(self.mesh, shooter)
+        gain = None if self.refiner is None else self._luminance_per_form_factor(shot_power)
         relabelled = None  # what the next pass sees, when carried over instead of rendered
         while True:
             seen = relabelled if relabelled is not None else self._render(shooter)
@@ -241,7 +249,7 @@ class ProgressiveSolver:
                 break
             start = time.perf_counter()
             ctx = ShotContext(self.mesh, shooter, seen.eye, self.form_factors.normals[shooter], seen.form_factors,
-                              luminance(self.reflectance * shot_power) / self.areas, None, candidates)
+                              gain, None, candidates)
             self.refine_seconds += time.perf_counter() - start
             ctx.jacobian, view = self._gradient(seen, ctx)
             start = time.perf_counter()
@@ -255,6 +263,7 @@ class ProgressiveSolver:
             parent, split = self._split(selected)
             new = torch.cat([split, torch.arange(T, len(parent), device=self.device)])  # their rows in the new mesh
             candidates = self.refiner.splittable(self.mesh, shooter, new)
+            gain = inherit(gain, parent).index_copy_(0, new, self._luminance_per_form_factor(shot_power, new))
             relabelled = None
             if self.relabel and not bool((split == shooter).any()):  # the eye has not moved
                 relabelled = seen.relabelled(view, parent, split, self.mesh, self.form_factors.weights.reshape(-1))

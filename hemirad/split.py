@@ -187,9 +187,7 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
     chosen = torch.nonzero(selected).reshape(-1)
     rounds = SplitRounds(mesh, pattern, room=len(chosen))
     rounds.split(chosen)
-    out, parent = rounds.result()
-    hand_over_geometry(mesh, out, parent)
-    return out, parent
+    return rounds.result()
 
 
 class _Growing:
@@ -221,7 +219,9 @@ class SplitRounds:
 
     The mesh's arrays are copied once into buffers with room to grow, and every round writes
     its children in place: the result is the one a chain of ``split_triangles`` calls gives,
-    bit for bit, without copying the whole mesh per round.
+    bit for bit, without copying the whole mesh per round. Likewise the midpoints the rounds
+    make are looked up in a small index of their own and merged into the mesh's sorted one
+    once, by ``result``.
 
     Args:
         mesh: the mesh before the first round; not modified.
@@ -244,6 +244,8 @@ class SplitRounds:
         self._edge_parents = _Growing(mesh.edge_parents, new_vertices)
         # the midpoint index, once needed (pattern 2 looks midpoints up; pattern 1 makes none)
         self._index = mesh.__dict__.get("_midpoint_index")
+        self._new_midpoints = []  # (keys, midpoints) made by each round, not yet in _index
+        self._replaced = []  # per round, the split triangles of the mesh before (their rows changed)
 
     @property
     def num_elements(self) -> int:
@@ -262,7 +264,17 @@ class SplitRounds:
         """``midpoint_lookup`` of the current mesh."""
         if self._index is None:
             self._index = _midpoint_index(self.before)
-        return _lookup(*self._index)
+        find_old = _lookup(*self._index)
+        if not self._new_midpoints:
+            return find_old
+        keys, order = torch.sort(torch.cat([keys for keys, _ in self._new_midpoints]))
+        find_new = _lookup(keys, torch.cat([mid for _, mid in self._new_midpoints]).index_select(0, order))
+
+        def find(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # an edge is in one index or neither
+            old = find_old(a, b)
+            return torch.where(old >= 0, old, find_new(a, b))
+
+        return find
 
     def split(self, chosen: torch.Tensor) -> None:
         """Split the current triangles ``chosen`` (n,), sorted indices."""
@@ -279,11 +291,11 @@ class SplitRounds:
         self._parent.append(self._parent.values.index_select(0, chosen).repeat_interleave(others))
         self._vertices.append(new_vertices.to(self._vertices.buffer.dtype))
         self._edge_parents.append(new_parents)
+        self._replaced.append(chosen[chosen < self.before.num_elements])
         new_midpoints = torch.nonzero(new_parents[:, 0] >= 0).reshape(-1)
         if self._index is not None and len(new_midpoints):
-            self._index = _merged_index(
-                self._index, _edge_keys(new_parents[new_midpoints, 0], new_parents[new_midpoints, 1]),
-                V + new_midpoints)
+            self._new_midpoints.append(
+                (_edge_keys(new_parents[new_midpoints, 0], new_parents[new_midpoints, 1]), V + new_midpoints))
 
     def unbalanced(self, near: torch.Tensor | None = None) -> torch.Tensor:
         """``unbalanced`` of the current mesh; ``near`` (V,) over its vertices."""
@@ -292,26 +304,25 @@ class SplitRounds:
     def result(self) -> tuple[Mesh, torch.Tensor]:
         """The split mesh and (T',) the triangle of the mesh before that each one lies in
         (``split_triangles``' two results, for all the rounds together). The mesh holds
-        views of the buffers: no round may follow."""
-        parent = self._parent.values
+        views of the buffers (no round may follow) and the geometry and plane ids the mesh
+        before had computed, computed afresh for the changed triangles only: the split
+        ones and the appended ones."""
+        old, parent = self.before, self._parent.values
         mesh = Mesh(vertices=self._vertices.values, triangles=self._triangles.values,
-                    surface=inherit(self.before.surface, parent), material=inherit(self.before.material, parent),
-                    surface_names=list(self.before.surface_names), level=self._level.values,
+                    surface=inherit(old.surface, parent), material=inherit(old.material, parent),
+                    surface_names=list(old.surface_names), level=self._level.values,
                     edge_parents=self._edge_parents.values)
+        if self._new_midpoints:
+            keys, midpoints = (torch.cat(parts) for parts in zip(*self._new_midpoints))
+            self._index, self._new_midpoints = _merged_index(self._index, keys, midpoints), []
         if self._index is not None:
             mesh.__dict__["_midpoint_index"] = self._index
+        T = old.num_elements
+        replaced = torch.unique(torch.cat(self._replaced)) if self._replaced else parent[:0]
+        mesh.inherit_geometry(old, torch.cat([replaced, torch.arange(T, len(parent), device=parent.device)]))
+        if "plane_ids" in old.__dict__:  # children lie in their parent's plane
+            mesh.__dict__["plane_ids"] = inherit(old.plane_ids, parent)
         return mesh, parent
-
-
-def hand_over_geometry(old: Mesh, new: Mesh, parent: torch.Tensor) -> None:
-    """Give ``new``, made from ``old`` by one or more splits (``parent`` as they return it),
-    the geometry and plane ids ``old`` has computed, computing only the triangles that
-    changed: the split ones (their level rose) and the appended ones."""
-    T = old.num_elements
-    changed = torch.nonzero(new.level[:T] != old.level).reshape(-1)
-    new.inherit_geometry(old, torch.cat([changed, torch.arange(T, len(parent), device=parent.device)]))
-    if "plane_ids" in old.__dict__:  # children lie in their parent's plane
-        new.__dict__["plane_ids"] = inherit(old.plane_ids, parent)
 
 
 def inherit(values: torch.Tensor, parent: torch.Tensor) -> torch.Tensor:

@@ -237,6 +237,31 @@ def test_geometry_handed_over_by_a_split_is_the_one_computed_afresh(pattern):
     assert torch.equal(mesh.corners_of(3), fresh.corners[3])
 
 
+@pytest.mark.parametrize("pattern", ["pattern1", "pattern2"])
+def test_split_rounds_give_what_a_chain_of_splits_gives(pattern):
+    """Rounds write into shared buffers and look midpoints up in an index of their own until
+    ``result``: a later round must still reuse the midpoints an earlier one made."""
+    from hemirad.split import SplitRounds, _midpoint_index
+
+    g = torch.Generator().manual_seed(11)
+    start = _jittered_grid(seed=2)
+    start.normals, start.areas, start.centroids, _midpoint_index(start)  # computed: handed over
+    rounds, chained, chained_parent = SplitRounds(start, pattern), start, torch.arange(start.num_elements)
+    for _ in range(3):
+        selected = torch.rand(rounds.num_elements, generator=g) < 0.3
+        rounds.split(torch.nonzero(selected).reshape(-1))
+        chained, parent = split_triangles(chained, selected, pattern)
+        chained_parent = chained_parent[parent]
+    mesh, parent = rounds.result()
+    assert torch.equal(parent, chained_parent)
+    for name in ("vertices", "triangles", "surface", "material", "level", "edge_parents"):
+        assert torch.equal(getattr(mesh, name), getattr(chained, name)), name
+    for name in ("centroids", "areas", "normals", "_midpoint_index"):
+        ours, theirs = mesh.__dict__[name], chained.__dict__[name]
+        assert all(torch.equal(a, b) for a, b in zip(ours, theirs)) if name == "_midpoint_index" else \
+            torch.equal(ours, theirs), name
+
+
 def test_a_leaf_beside_twice_split_neighbours_is_unbalanced():
     from hemirad.split import unbalanced
 
