@@ -42,12 +42,11 @@ FACES = (
 _VERTEX_SHADER = """
 #version 330
 uniform mat4 mvp;
-uniform mat4 view;
 in vec3 position;
 out float view_depth;
 void main() {
-    view_depth = -(view * vec4(position, 1.0)).z;
     gl_Position = mvp * vec4(position, 1.0);
+    view_depth = gl_Position.w;  // the frustum's last row is (0, 0, -1, 0): w is the view distance
 }
 """
 
@@ -233,7 +232,6 @@ class Hemicube:
             view = rotation @ translate
             mvp = _frustum(-near, near, bottom * near, near, near, far) @ view
             self.program["mvp"].write(mvp.T.astype(np.float32).tobytes())
-            self.program["view"].write(view.T.astype(np.float32).tobytes())
             self.program["first_item"].value = first
             ctx.viewport = viewport
             self._vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
