@@ -29,7 +29,7 @@ import torch
 from torch.func import jacfwd
 
 from .device import cached_per_device
-from .fastops import row_sums
+from .fastops import flatnonzero, row_sums
 from .formfactor import element_form_factors, hemicube_directions
 from .hemicube import FACES, face_viewports
 
@@ -119,7 +119,7 @@ def boundary_pairs(label: torch.Tensor, resolution: int) -> torch.Tensor:
     horizontal = differ(image[:, :-1], image[:, 1:], seen[:, :-1], seen[:, 1:]).reshape(-1)
     same_face = same_face_rows(R, label.device)
     vertical = differ(image[:-1][same_face], image[1:][same_face], seen[:-1][same_face], seen[1:][same_face])
-    return torch.cat([horizontal.nonzero().reshape(-1), vertical.reshape(-1).nonzero().reshape(-1) + len(horizontal)])
+    return torch.cat([flatnonzero(horizontal), flatnonzero(vertical.reshape(-1)) + len(horizontal)])
 
 
 def pairs_touching(pixels: torch.Tensor, resolution: int) -> torch.Tensor:
@@ -219,7 +219,7 @@ class ShotView:
             mask = element >= 0
         if wanted is not None:
             mask = mask & wanted.index_select(0, element.clamp(min=0))
-        found = mask.nonzero().reshape(-1)
+        found = flatnonzero(mask)
         return found if pixels is None else pixels.index_select(0, found)
 
 
@@ -360,7 +360,7 @@ def occlusion_pairs(view: ShotView, wanted: torch.Tensor | None = None, plane_id
         ea, eb = ends(a, pair), ends(b, pair)
         keep = torch.ones(len(pair), dtype=torch.bool, device=pair.device) if wanted is None else \
             wanted.index_select(0, ea) | wanted.index_select(0, eb)
-    keep = keep.nonzero().reshape(-1)
+    keep = flatnonzero(keep)
     pair = pair.index_select(0, keep)
     a, b, ea, eb = a.index_select(0, pair), b.index_select(0, pair), ea.index_select(0, keep), eb.index_select(0, keep)
     # Without plane ids most such pairs are coplanar neighbours on a finely meshed surface:
@@ -381,7 +381,7 @@ def occlusion_pairs(view: ShotView, wanted: torch.Tensor | None = None, plane_id
     occludes = view.front[far] & (far_behind_near < -tol) & (near_before_far > tol)
     if wanted is not None:
         occludes &= wanted[torch.where(a_near, eb, ea)]
-    occludes = occludes.nonzero().reshape(-1)
+    occludes = flatnonzero(occludes)
     a_near, far = a_near[occludes], far[occludes]
     near = torch.where(a_near, a[occludes], b[occludes])
     axis = torch.where(a_near[:, None], step[pair[occludes]], -step[pair[occludes]])  # from N's pixel towards F's

@@ -4,6 +4,7 @@ from __future__ import annotations
 import torch
 
 from .criteria import CRITERIA, ShotContext
+from .fastops import flatnonzero
 from .display import luminance
 from .gradient import ShotView
 from .mesh import Mesh
@@ -63,7 +64,7 @@ class Refiner:
         """(T,) bool the pass's candidates (every ``splittable`` receiver when it names none)
         and (R,) their indices."""
         candidates = self.splittable(ctx.mesh, ctx.shooter) if ctx.candidates is None else ctx.candidates
-        return candidates, torch.nonzero(candidates).reshape(-1)
+        return candidates, flatnonzero(candidates)
 
     def could_exceed(self, ctx: ShotContext, view: ShotView) -> torch.Tensor | None:
         """(T,) bool: the pass's candidates whose score's interior part may pass the threshold
@@ -107,7 +108,7 @@ class Refiner:
             the new mesh, and (T',) the index in ``mesh`` each new element descends from.
         """
         device = mesh.triangles.device
-        chosen = torch.nonzero(selected).reshape(-1)
+        chosen = flatnonzero(selected)
         if len(chosen) == 0:
             return mesh, torch.arange(mesh.num_elements, device=device)
         rounds = SplitRounds(mesh, self.options.pattern, room=2 * len(chosen))  # grading adds some more

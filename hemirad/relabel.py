@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .fastops import row_sums
+from .fastops import flatnonzero, row_sums
 from .mesh import Mesh
 from .split import inherit
 
@@ -55,7 +55,7 @@ def descendants(parent: torch.Tensor, split: torch.Tensor) -> Descent:
 def split_pixels_of(element: torch.Tensor, descent: Descent) -> torch.Tensor:
     """(N,) the pixels whose element was split (it has more than one descendant)."""
     was_split = (descent.count > 1).index_select(0, element.clamp(min=0))
-    return ((element >= 0) & was_split).nonzero().reshape(-1)
+    return flatnonzero((element >= 0) & was_split)
 
 
 def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch.Tensor, descent: Descent,
@@ -115,6 +115,6 @@ def relabel_form_factors(form_factors: torch.Tensor, descent: Descent, element: 
         (T',)
     """
     out = inherit(form_factors, descent.parent).index_fill_(0, descent.ordered, 0.0)
-    pixels = split_pixels.index_select(0, front.index_select(0, split_pixels).nonzero().reshape(-1))
+    pixels = split_pixels.index_select(0, flatnonzero(front.index_select(0, split_pixels)))
     # summed in pixel order from zero, as a bincount of the whole atlas sums them
     return out.index_add_(0, element.index_select(0, pixels), weight.index_select(0, pixels))

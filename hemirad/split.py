@@ -20,6 +20,7 @@ import math
 
 import torch
 
+from .fastops import flatnonzero
 from .mesh import Mesh
 
 PATTERNS = ("pattern1", "pattern2")
@@ -44,7 +45,7 @@ def _midpoint_index(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
     cached = mesh.__dict__.get("_midpoint_index")
     if cached is None:
         parents = mesh.edge_parents
-        mid_index = torch.nonzero(parents[:, 0] >= 0).reshape(-1)
+        mid_index = flatnonzero(parents[:, 0] >= 0)
         keys, order = torch.sort(_edge_keys(parents[mid_index, 0], parents[mid_index, 1]))
         cached = mesh.__dict__["_midpoint_index"] = (keys, mid_index[order])
     return cached
@@ -184,7 +185,7 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
     selected = torch.as_tensor(selected, dtype=torch.bool, device=mesh.triangles.device).reshape(-1)
     if len(selected) != mesh.num_elements:
         raise ValueError(f"need one flag per element ({mesh.num_elements}), got {len(selected)}")
-    chosen = torch.nonzero(selected).reshape(-1)
+    chosen = flatnonzero(selected)
     rounds = SplitRounds(mesh, pattern, room=len(chosen))
     rounds.split(chosen)
     return rounds.result()
@@ -292,7 +293,7 @@ class SplitRounds:
         self._vertices.append(new_vertices.to(self._vertices.buffer.dtype))
         self._edge_parents.append(new_parents)
         self._replaced.append(chosen[chosen < self.before.num_elements])
-        new_midpoints = torch.nonzero(new_parents[:, 0] >= 0).reshape(-1)
+        new_midpoints = flatnonzero(new_parents[:, 0] >= 0)
         if self._index is not None and len(new_midpoints):
             self._new_midpoints.append(
                 (_edge_keys(new_parents[new_midpoints, 0], new_parents[new_midpoints, 1]), V + new_midpoints))
@@ -358,7 +359,7 @@ def _unbalanced(all_triangles: torch.Tensor, find, near: torch.Tensor | None) ->
         candidates, triangles = torch.arange(len(all_triangles), device=all_triangles.device), all_triangles
     else:
         marked = near.index_select(0, all_triangles.reshape(-1)).reshape(-1, 3)
-        candidates = torch.nonzero(marked[:, 0] | marked[:, 1] | marked[:, 2]).reshape(-1)
+        candidates = flatnonzero(marked[:, 0] | marked[:, 1] | marked[:, 2])
         triangles = all_triangles.index_select(0, candidates)
     a = triangles.reshape(-1)
     b = torch.stack([triangles[:, 1], triangles[:, 2], triangles[:, 0]], dim=1).reshape(-1)
@@ -366,7 +367,7 @@ def _unbalanced(all_triangles: torch.Tensor, find, near: torch.Tensor | None) ->
     has = m >= 0
     m_safe = torch.where(has, m, a)
     nested = (has & ((find(a, m_safe) >= 0) | (find(m_safe, b) >= 0))).reshape(-1, 3)
-    return candidates[torch.nonzero(nested[:, 0] | nested[:, 1] | nested[:, 2]).reshape(-1)]
+    return candidates.index_select(0, flatnonzero(nested[:, 0] | nested[:, 1] | nested[:, 2]))
 
 
 def largest_angles(mesh: Mesh) -> torch.Tensor:
