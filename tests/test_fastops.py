@@ -1,0 +1,18 @@
+"""The fast idioms give what the plain torch calls they replace give, bit for bit."""
+import torch
+
+from hemirad.fastops import flatnonzero, row_sums
+
+
+def test_row_sums_is_sum_over_the_three_columns():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(1000, 3, dtype=torch.float64, generator=g) * torch.logspace(-8, 8, 1000, dtype=torch.float64)[:, None]
+    assert torch.equal(row_sums(x), x.sum(1))
+
+
+def test_flatnonzero_is_torch_nonzero():
+    g = torch.Generator().manual_seed(1)
+    mask = torch.rand(5000, generator=g) < 0.3
+    for m in (mask, mask[::3], torch.zeros(0, dtype=torch.bool), torch.zeros(7, dtype=torch.bool), mask.reshape(50, 100)[:, 4]):
+        found = flatnonzero(m)
+        assert found.dtype == torch.int64 and torch.equal(found, torch.nonzero(m).reshape(-1))
