@@ -63,27 +63,33 @@ def gradient_score(ctx: ShotContext, rows: torch.Tensor | None = None) -> torch.
     return (grad @ offsets.T).abs().amax(dim=1)
 
 
-def gradient_score_bound(ctx: ShotContext, rows: torch.Tensor, distance: torch.Tensor) -> torch.Tensor:
+def gradient_score_bound(ctx: ShotContext, rows: torch.Tensor, distance: torch.Tensor,
+                         secant_sums: torch.Tensor) -> torch.Tensor:
     """(R,) an upper bound of the interior (frozen-visibility) part of ``gradient_score`` for
-    the receivers ``rows``, from F_sj alone: where it is under the threshold, that part's
-    Jacobian need not be computed.
+    the receivers ``rows``, from what the render gave without any hit point: where it is
+    under the threshold, that part's Jacobian need not be computed.
 
     Each pixel's kernel K_q = w_q A B / (A0 B0) (r0 / r)^4 has |dK_q/dc| <= K_q (1/A + 1/B + 4/r),
     with A = n_s . (y - c) its height above the shooter's plane, B = n_j . (c - y) the eye's
-    height above the receiver's plane and r = |y - c| >= B. Over a receiver B is one number
-    and A is at least its smallest corner's height A_min, so |dF_sj/dc| <= F_sj (1/A_min + 5/B);
-    a receiver reaching below the shooter's plane (A_min <= 0) gets no bound (infinity).
+    height above the receiver's plane and r = |y - c| >= B; at c0, K_q = w_q. Over a receiver
+    B is one number, and A = r cos(theta_q) >= B cos(theta_q), theta_q the pixel's angle from
+    the shooter's normal, so |dF_sj/dc| <= (sum_q w_q sec(theta_q) + 5 F_sj) / B. A receiver
+    wholly above the shooter's plane also has A >= A_min, its lowest corner's height, hence
+    F_sj (1/A_min + 5/B); the smaller of the two is taken.
 
     Args:
-        rows: (R,) receivers; distance: (R,) their n_j . (p_j - eye) (``ShotView.distance_of``).
+        rows: (R,) receivers; distance: (R,) their n_j . (p_j - eye) (``ShotView.distance_of``);
+        secant_sums: (R,) their sum_q w_q sec(theta_q) (``ShotView.secant_sums``).
     """
     corners = ctx.mesh.corners_of(rows)  # (R, 3, 3)
     lowest = ((corners - ctx.eye) @ ctx.normal).amin(dim=1)  # (R,) A_min
     height = distance.abs()  # B
-    rate = torch.where(lowest > 0, 1.0 / lowest.clamp(min=1e-300) + 5.0 / height, torch.inf)
+    F = _rows(ctx.form_factors, rows)
+    by_corner = torch.where(lowest > 0, F * (1.0 / lowest.clamp(min=1e-300) + 5.0 / height), torch.inf)
+    by_pixel = (secant_sums + 5.0 * F) / height
     shooter = ctx.mesh.corners_of(ctx.shooter)
     reach = (shooter - shooter.mean(0)).norm(dim=1).max()  # max_k |P_k - G|
-    return _rows(ctx.luminance_per_form_factor, rows) * _rows(ctx.form_factors, rows) * rate * reach
+    return _rows(ctx.luminance_per_form_factor, rows) * torch.minimum(by_corner, by_pixel) * reach
 
 
 def receiver_score(ctx: ShotContext, rows: torch.Tensor | None = None) -> torch.Tensor:
@@ -138,9 +144,10 @@ class Criterion:
     score: Callable[[ShotContext, torch.Tensor | None], torch.Tensor]
     jacobian: str | None  # "full", "interior" or None: which form-factor gradient it reads
     radiosity_units: bool = True  # False: the threshold is a length
-    # (ctx without its jacobian, rows, ShotView.distance_of(rows)) -> (rows,) an upper bound of the
-    # score's interior part, for leaving receivers out of the interior Jacobian; None: none
-    interior_bound: Callable[[ShotContext, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
+    # (ctx without its jacobian, rows, ShotView.distance_of(rows), ShotView.secant_sums rows) ->
+    # (rows,) an upper bound of the score's interior part, for leaving receivers out of the
+    # interior Jacobian; None: none
+    interior_bound: Callable[[ShotContext, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
 
 
 CRITERIA: dict[str, Criterion] = {

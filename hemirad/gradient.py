@@ -56,6 +56,14 @@ def pixel_directions(resolution: int) -> torch.Tensor:
 
 
 @cached_per_device
+def pixel_secants(resolution: int) -> torch.Tensor:
+    """(P,) 1 / cos of each pixel ray's angle from the hemicube's axis (the local z). Do not
+    modify (cached)."""
+    d = pixel_directions(resolution)
+    return d.norm(dim=0) / d[2]
+
+
+@cached_per_device
 def neighbour_pairs(resolution: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Every pair of 4-neighbour pixels within one face of the atlas (flattened indices).
 
@@ -206,6 +214,17 @@ class ShotView:
         """(3, N) where the rays (3, N) ``directions`` from the eye meet the planes of the
         (N,) elements ``k``, whose ``distance`` (N,) is given."""
         return self.eye[:, None] + (distance / (directions * self.normals_of(k)).sum(0)) * directions
+
+    def secant_sums(self, pixels: torch.Tensor | None = None) -> torch.Tensor:
+        """(T,) per element, the sum over its front-facing pixels of w_q sec(theta_q), theta_q
+        the angle between the pixel's ray and the shooter's normal (``gradient_score_bound``);
+        over ``pixels`` (N,) only when given (elements none of them see get 0 or a partial sum)."""
+        secant = pixel_secants(self.resolution, self.eye.device)
+        if pixels is None:
+            return element_form_factors(self.element, self.front, self.weight * secant, len(self.normals))
+        weight = self.weight.index_select(0, pixels) * secant.index_select(0, pixels)
+        return element_form_factors(self.element.index_select(0, pixels), self.front.index_select(0, pixels),
+                                    weight, len(self.normals))
 
     def wanted_pixels(self, wanted: torch.Tensor | None, pixels: torch.Tensor | None = None,
                       front: bool = False) -> torch.Tensor:

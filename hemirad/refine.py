@@ -4,8 +4,8 @@ from __future__ import annotations
 import torch
 
 from .criteria import CRITERIA, ShotContext
-from .fastops import flatnonzero
 from .display import luminance
+from .fastops import flatnonzero
 from .gradient import ShotView
 from .mesh import Mesh
 from .scene import RefineOptions
@@ -66,20 +66,23 @@ class Refiner:
         candidates = self.splittable(ctx.mesh, ctx.shooter) if ctx.candidates is None else ctx.candidates
         return candidates, flatnonzero(candidates)
 
-    def could_exceed(self, ctx: ShotContext, view: ShotView) -> torch.Tensor | None:
+    def could_exceed(self, ctx: ShotContext, view: ShotView, pixels: torch.Tensor | None = None
+                     ) -> torch.Tensor | None:
         """(T,) bool: the pass's candidates whose score's interior part may pass the threshold
         (the criterion's ``interior_bound``), the only ones whose interior Jacobian is needed;
         None when the criterion has no bound (all candidates then need it).
 
         Args:
             ctx: the pass, before its Jacobian; view: what its hemicube saw.
+            pixels: (N,) optional: every pixel that sees a candidate is among these.
         """
         if self.criterion.interior_bound is None:
             return None
         candidates, rows = self._candidates(ctx)
         out = torch.zeros_like(candidates)
-        # with room for rounding: an element at the threshold keeps its exact score
-        out[rows] = self.criterion.interior_bound(ctx, rows, view.distance_of(rows)) * (1.0 + 1e-9) > self.threshold
+        bound = self.criterion.interior_bound(ctx, rows, view.distance_of(rows),
+                                              view.secant_sums(pixels).index_select(0, rows))
+        out[rows] = bound * (1.0 + 1e-9) > self.threshold  # room for rounding: at the threshold, the exact score
         return out
 
     def select(self, ctx: ShotContext) -> torch.Tensor:

@@ -194,7 +194,7 @@ class ProgressiveSolver:
             J = form_factor_gradient(view, interior=options.interior or wanted == "interior",
                                      shadow_edges=options.shadow_edges and wanted == "full", wanted=ctx.candidates,
                                      plane_ids=self.mesh.plane_ids, pixels=seen.changed,
-                                     interior_wanted=self.refiner.could_exceed(ctx, view) if self.bound else None)
+                                     interior_wanted=self.refiner.could_exceed(ctx, view, seen.changed) if self.bound else None)
         self.gradient_seconds += time.perf_counter() - start
         return J, view
 
