@@ -29,7 +29,7 @@ import torch
 from torch.func import jacfwd
 
 from .device import cached_per_device
-from .fastops import flatnonzero, row_sums
+from .fastops import flatnonzero, marked_positions, row_sums
 from .formfactor import element_form_factors, hemicube_directions
 from .hemicube import FACES, face_viewports
 
@@ -232,13 +232,13 @@ class ShotView:
         front-facing only with ``front``; only ``pixels`` are examined when given (the rest
         are known to see none of the wanted elements)."""
         element = self.element if pixels is None else self.element.index_select(0, pixels)
-        if front:
-            mask = self.front if pixels is None else self.front.index_select(0, pixels)
+        if wanted is None:
+            found = flatnonzero(element >= 0)
         else:
-            mask = element >= 0
-        if wanted is not None:
-            mask = mask & wanted.index_select(0, element.clamp(min=0))
-        found = flatnonzero(mask)
+            found = marked_positions(element, wanted)
+        if front:  # a front-facing pixel sees an element: a subset of the found ones
+            seen_front = self.front if pixels is None else self.front.index_select(0, pixels)
+            found = found.index_select(0, flatnonzero(seen_front.index_select(0, found)))
         return found if pixels is None else pixels.index_select(0, found)
 
 

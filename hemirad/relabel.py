@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .fastops import flatnonzero, row_sums
+from .fastops import flatnonzero, marked_positions, row_sums
 from .mesh import Mesh
 from .split import inherit
 
@@ -54,8 +54,7 @@ def descendants(parent: torch.Tensor, split: torch.Tensor) -> Descent:
 
 def split_pixels_of(element: torch.Tensor, descent: Descent) -> torch.Tensor:
     """(N,) the pixels whose element was split (it has more than one descendant)."""
-    was_split = (descent.count > 1).index_select(0, element.clamp(min=0))
-    return flatnonzero((element >= 0) & was_split)
+    return marked_positions(element, descent.count > 1)
 
 
 def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch.Tensor, descent: Descent,

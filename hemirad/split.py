@@ -20,7 +20,7 @@ import math
 
 import torch
 
-from .fastops import flatnonzero
+from .fastops import flatnonzero, rows_touching
 from .mesh import Mesh
 
 PATTERNS = ("pattern1", "pattern2")
@@ -358,8 +358,7 @@ def _unbalanced(all_triangles: torch.Tensor, find, near: torch.Tensor | None) ->
     if near is None:
         candidates, triangles = torch.arange(len(all_triangles), device=all_triangles.device), all_triangles
     else:
-        marked = near.index_select(0, all_triangles.reshape(-1)).reshape(-1, 3)
-        candidates = flatnonzero(marked[:, 0] | marked[:, 1] | marked[:, 2])
+        candidates = rows_touching(all_triangles, near)
         triangles = all_triangles.index_select(0, candidates)
     a = triangles.reshape(-1)
     b = torch.stack([triangles[:, 1], triangles[:, 2], triangles[:, 0]], dim=1).reshape(-1)

@@ -1,7 +1,7 @@
 """The fast idioms give what the plain torch calls they replace give, bit for bit."""
 import torch
 
-from hemirad.fastops import flatnonzero, row_sums
+from hemirad.fastops import flatnonzero, marked_positions, row_sums, rows_touching
 
 
 def test_row_sums_is_sum_over_the_three_columns():
@@ -16,3 +16,14 @@ def test_flatnonzero_is_torch_nonzero():
     for m in (mask, mask[::3], torch.zeros(0, dtype=torch.bool), torch.zeros(7, dtype=torch.bool), mask.reshape(50, 100)[:, 4]):
         found = flatnonzero(m)
         assert found.dtype == torch.int64 and torch.equal(found, torch.nonzero(m).reshape(-1))
+
+
+def test_marked_positions_and_rows_touching_are_their_torch_forms():
+    g = torch.Generator().manual_seed(2)
+    table = torch.rand(300, generator=g) < 0.2
+    index = torch.randint(-1, 300, (4000,), generator=g)
+    expected = torch.nonzero((index >= 0) & table[index.clamp(min=0)]).reshape(-1)
+    assert torch.equal(marked_positions(index, table), expected)
+    assert len(marked_positions(torch.full((5,), -1), table)) == 0
+    rows = torch.randint(0, 300, (1000, 3), generator=g)
+    assert torch.equal(rows_touching(rows, table), torch.nonzero(table[rows].any(dim=1)).reshape(-1))
