@@ -43,3 +43,11 @@ def rows_touching(rows: torch.Tensor, marked: torch.Tensor) -> torch.Tensor:
         return torch.from_numpy(np.flatnonzero(hit[:, 0] | hit[:, 1] | hit[:, 2]))
     hit = marked.index_select(0, rows.reshape(-1)).reshape(-1, 3)
     return flatnonzero(hit[:, 0] | hit[:, 1] | hit[:, 2])
+
+
+def take_or_none(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """(N,) int64 ``table[index]``, -1 where ``index`` is -1 (no element): ``torch.where(index
+    >= 0, table[index.clamp(min=0)], -1)`` for a (T,) int64 table."""
+    if index.device.type == "cpu":  # a leading -1 takes the -1s
+        return torch.from_numpy(np.concatenate(([-1], table.numpy()))[index.numpy() + 1])
+    return torch.where(index >= 0, table.index_select(0, index.clamp(min=0)), -1)

@@ -25,11 +25,12 @@ import warnings
 from dataclasses import dataclass
 from functools import cached_property
 
+import numpy as np
 import torch
 from torch.func import jacfwd
 
 from .device import cached_per_device
-from .fastops import flatnonzero, marked_positions, row_sums
+from .fastops import flatnonzero, marked_positions, row_sums, take_or_none
 from .formfactor import element_form_factors, hemicube_directions
 from .hemicube import FACES, face_viewports
 
@@ -118,16 +119,15 @@ def boundary_pairs(label: torch.Tensor, resolution: int) -> torch.Tensor:
         label: (P,) int64 per pixel, -1 for none.
     """
     R = resolution
-    image = label.reshape(3 * R, R)
-    seen = image >= 0
-
-    def differ(x, y, sx, sy):
-        return (x != y) & sx & sy
-
-    horizontal = differ(image[:, :-1], image[:, 1:], seen[:, :-1], seen[:, 1:]).reshape(-1)
     same_face = same_face_rows(R, label.device)
-    vertical = differ(image[:-1][same_face], image[1:][same_face], seen[:-1][same_face], seen[1:][same_face])
-    return torch.cat([flatnonzero(horizontal), flatnonzero(vertical.reshape(-1)) + len(horizontal)])
+    cpu = label.device.type == "cpu"
+    image = (label.numpy() if cpu else label).reshape(3 * R, R)  # NumPy compares int64 ~3x faster
+    seen = image >= 0
+    horizontal = ((image[:, :-1] != image[:, 1:]) & seen[:, :-1] & seen[:, 1:]).reshape(-1)
+    vertical = ((image[:-1] != image[1:]) & seen[:-1] & seen[1:])[same_face.numpy() if cpu else same_face].reshape(-1)
+    if cpu:
+        return torch.from_numpy(np.concatenate([np.flatnonzero(horizontal), np.flatnonzero(vertical) + len(horizontal)]))
+    return torch.cat([flatnonzero(horizontal), flatnonzero(vertical) + len(horizontal)])
 
 
 def pairs_touching(pixels: torch.Tensor, resolution: int) -> torch.Tensor:
@@ -374,7 +374,7 @@ def occlusion_pairs(view: ShotView, wanted: torch.Tensor | None = None, plane_id
     else:  # all pairs across an element (or plane) boundary, then those touching a wanted element
         label = view.element
         if plane_ids is not None:
-            label = torch.where(label >= 0, plane_ids.index_select(0, label.clamp(min=0)), -1)
+            label = take_or_none(plane_ids, label)
         pair = boundary_pairs(label, R)
         ea, eb = ends(a, pair), ends(b, pair)
         keep = torch.ones(len(pair), dtype=torch.bool, device=pair.device) if wanted is None else \

@@ -1,7 +1,7 @@
 """The fast idioms give what the plain torch calls they replace give, bit for bit."""
 import torch
 
-from hemirad.fastops import flatnonzero, marked_positions, row_sums, rows_touching
+from hemirad.fastops import flatnonzero, marked_positions, row_sums, rows_touching, take_or_none
 
 
 def test_row_sums_is_sum_over_the_three_columns():
@@ -25,5 +25,7 @@ def test_marked_positions_and_rows_touching_are_their_torch_forms():
     expected = torch.nonzero((index >= 0) & table[index.clamp(min=0)]).reshape(-1)
     assert torch.equal(marked_positions(index, table), expected)
     assert len(marked_positions(torch.full((5,), -1), table)) == 0
+    ids = torch.randint(0, 50, (300,), generator=g)
+    assert torch.equal(take_or_none(ids, index), torch.where(index >= 0, ids[index.clamp(min=0)], -1))
     rows = torch.randint(0, 300, (1000, 3), generator=g)
     assert torch.equal(rows_touching(rows, table), torch.nonzero(table[rows].any(dim=1)).reshape(-1))
