@@ -22,7 +22,7 @@ from .mesh import Mesh
 from .refine import Refiner
 from .relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
 from .runtime import deterministic, keep_freed_memory, torch_threads
-from .split import inherit
+from .split import GrowingRows, inherit
 
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
@@ -148,10 +148,8 @@ class ProgressiveSolver:
         mesh = mesh.to(self.device)
         reflectance, emission = reflectance.to(self.device), emission.to(self.device)
         self.mesh = mesh
-        self.reflectance = reflectance
-        self.emission = emission
         self.areas = mesh.areas
-        self.state = SolverState(radiosity=emission.clone(), unshot=emission.clone())
+        self._adopt(reflectance, emission, SolverState(radiosity=emission.clone(), unshot=emission.clone()))
         self.emitted_power = (emission * self.areas[:, None]).sum(0)  # (3,)
         self.form_factors = HemicubeFormFactors(mesh, resolution, cull, self.device)
         self.refiner = refiner
@@ -205,6 +203,13 @@ class ProgressiveSolver:
             return luminance(self.reflectance * shot_power) / self.areas
         return luminance(self.reflectance.index_select(0, rows) * shot_power) / self.areas.index_select(0, rows)
 
+    def _adopt(self, reflectance: torch.Tensor, emission: torch.Tensor, state: SolverState) -> None:
+        """Make these the per-element values, kept in buffers that splits append to
+        (``split.GrowingRows``; rows are carried over without copying the old ones)."""
+        self._per_element = [GrowingRows(v) for v in (reflectance, emission, state.radiosity, state.unshot)]
+        self.reflectance, self.emission, state.radiosity, state.unshot = (rows.values for rows in self._per_element)
+        self.state = state
+
     def _split(self, selected: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Split the selected elements; children inherit B and dB. Every element keeps its
         index (a split one's now holds its first child: ``split.split_triangles``).
@@ -215,8 +220,8 @@ class ProgressiveSolver:
         """
         T = self.mesh.num_elements
         self.mesh, parent = self.refiner.split(self.mesh, selected)
-        self.reflectance, self.emission = inherit(self.reflectance, parent), inherit(self.emission, parent)
-        self.state.radiosity, self.state.unshot = inherit(self.state.radiosity, parent), inherit(self.state.unshot, parent)
+        self.reflectance, self.emission, self.state.radiosity, self.state.unshot = (
+            rows.inherit(parent) for rows in self._per_element)
         self.areas = self.mesh.areas
         self.form_factors.set_geometry(self.mesh)
         return parent, torch.unique(parent[T:])
@@ -335,9 +340,9 @@ class ProgressiveSolver:
             raise ValueError("the state was saved with refinement " + ("off" if state["refiner"] is None else "on"))
         self.mesh, self.areas = mesh, mesh.areas
         per_element = {k: v.to(self.device) for k, v in per_element.items()}
-        self.reflectance, self.emission = per_element["reflectance"], per_element["emission"]
-        self.state = SolverState(per_element["radiosity"], per_element["unshot"], int(state["shots"]),
-                                 state["absorbed"], state["escaped"])
+        self._adopt(per_element["reflectance"], per_element["emission"],
+                    SolverState(per_element["radiosity"], per_element["unshot"], int(state["shots"]),
+                                state["absorbed"], state["escaped"]))
         self.emitted_power = state["emitted_power"].to(torch.float64).to(self.device)
         if self.refiner is not None:
             self.refiner.load_state_dict(state["refiner"])

@@ -191,10 +191,15 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
     return rounds.result()
 
 
-class _Growing:
-    """A tensor with room to grow along its first dimension; ``values`` is the filled part."""
+class GrowingRows:
+    """A tensor with room to grow along its first dimension; ``values`` is the filled part.
 
-    def __init__(self, values: torch.Tensor, room: int):
+    Per-element values kept in one follow a mesh through its splits (``inherit``) by
+    appending the new rows in place, without copying the old ones; rows are only appended,
+    so a ``values`` taken before still holds what it held.
+    """
+
+    def __init__(self, values: torch.Tensor, room: int = 0):
         self.buffer = torch.empty((len(values) + room, *values.shape[1:]), dtype=values.dtype, device=values.device)
         self.buffer[:len(values)] = values
         self.size = len(values)
@@ -212,6 +217,11 @@ class _Growing:
             self.buffer = bigger
         self.buffer[self.size:need] = rows
         self.size = need
+
+    def inherit(self, parent: torch.Tensor) -> torch.Tensor:
+        """``inherit(values, parent)``, appended in place; returns the new ``values``."""
+        self.append(self.values.index_select(0, parent[self.size:]))
+        return self.values
 
 
 class SplitRounds:
@@ -238,11 +248,11 @@ class SplitRounds:
         device = mesh.triangles.device
         new_triangles = room * (self.per_parent - 1)
         new_vertices = room * (1 if pattern == "pattern1" else 3)
-        self._triangles = _Growing(mesh.triangles, new_triangles)
-        self._level = _Growing(mesh.level, new_triangles)
-        self._parent = _Growing(torch.arange(mesh.num_elements, device=device), new_triangles)
-        self._vertices = _Growing(mesh.vertices, new_vertices)
-        self._edge_parents = _Growing(mesh.edge_parents, new_vertices)
+        self._triangles = GrowingRows(mesh.triangles, new_triangles)
+        self._level = GrowingRows(mesh.level, new_triangles)
+        self._parent = GrowingRows(torch.arange(mesh.num_elements, device=device), new_triangles)
+        self._vertices = GrowingRows(mesh.vertices, new_vertices)
+        self._edge_parents = GrowingRows(mesh.edge_parents, new_vertices)
         # the midpoint index, once needed (pattern 2 looks midpoints up; pattern 1 makes none)
         self._index = mesh.__dict__.get("_midpoint_index")
         self._new_midpoints = []  # (keys, midpoints) made by each round, not yet in _index
