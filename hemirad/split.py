@@ -195,8 +195,9 @@ class GrowingRows:
     """A tensor with room to grow along its first dimension; ``values`` is the filled part.
 
     Per-element values kept in one follow a mesh through its splits (``inherit``) by
-    appending the new rows in place, without copying the old ones; rows are only appended,
-    so a ``values`` taken before still holds what it held.
+    appending the new rows in place, without copying the old ones; ``inherit`` and
+    ``append`` leave the filled rows alone, so a ``values`` taken before still holds what it
+    held (``SplitRounds`` also rewrites rows of its own buffers).
     """
 
     def __init__(self, values: torch.Tensor, room: int = 0):
