@@ -85,13 +85,17 @@ def _lookup(keys: torch.Tensor, mid_index: torch.Tensor):
     """``midpoint_lookup`` over an index of sorted edge keys and their midpoints."""
 
     def find(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        query = _edge_keys(a, b)
-        if len(keys) == 0:
-            return torch.full_like(query, -1)
-        pos = torch.searchsorted(keys, query).clamp_max(len(keys) - 1)
-        return torch.where(keys.index_select(0, pos) == query, mid_index.index_select(0, pos), -1)
+        return _search(keys, mid_index, _edge_keys(a, b))
 
     return find
+
+
+def _search(keys: torch.Tensor, mid_index: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+    """(N,) the midpoints of the (N,) edge keys ``query`` in a sorted index, -1 where absent."""
+    if len(keys) == 0:
+        return torch.full_like(query, -1)
+    pos = torch.searchsorted(keys, query).clamp_max(len(keys) - 1)
+    return torch.where(keys.index_select(0, pos) == query, mid_index.index_select(0, pos), -1)
 
 
 def _split_pattern1(vertices: torch.Tensor, triangles: torch.Tensor, chosen: torch.Tensor,
@@ -276,15 +280,15 @@ class SplitRounds:
         """``midpoint_lookup`` of the current mesh."""
         if self._index is None:
             self._index = _midpoint_index(self.before)
-        find_old = _lookup(*self._index)
         if not self._new_midpoints:
-            return find_old
+            return _lookup(*self._index)
         keys, order = torch.sort(torch.cat([keys for keys, _ in self._new_midpoints]))
-        find_new = _lookup(keys, torch.cat([mid for _, mid in self._new_midpoints]).index_select(0, order))
+        new = keys, torch.cat([mid for _, mid in self._new_midpoints]).index_select(0, order)
 
         def find(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # an edge is in one index or neither
-            old = find_old(a, b)
-            return torch.where(old >= 0, old, find_new(a, b))
+            query = _edge_keys(a, b)
+            old = _search(*self._index, query)
+            return torch.where(old >= 0, old, _search(*new, query))
 
         return find
 
@@ -376,7 +380,8 @@ def _unbalanced(all_triangles: torch.Tensor, find, near: torch.Tensor | None) ->
     m = find(a, b)
     has = m >= 0
     m_safe = torch.where(has, m, a)
-    nested = (has & ((find(a, m_safe) >= 0) | (find(m_safe, b) >= 0))).reshape(-1, 3)
+    halves = find(torch.cat([a, m_safe]), torch.cat([m_safe, b])) >= 0  # (a, m) then (m, b)
+    nested = (has & (halves[:len(a)] | halves[len(a):])).reshape(-1, 3)
     return candidates.index_select(0, flatnonzero(nested[:, 0] | nested[:, 1] | nested[:, 2]))
 
 
