@@ -27,7 +27,8 @@ class Descent:
         parent: (T',) the old element every new one lies in; ``parent[:T]`` is the identity
             (``split.split_triangles``: every old element keeps its index).
         ordered: (K,) the new elements that lie in split old ones, grouped by parent.
-        start, count: (T,) each old element's run in ``ordered``; count 1: not split.
+        start, count: (T,) each old element's run in ``ordered`` (start is 0 for an unsplit
+            one); count 1: not split.
     """
 
     parent: torch.Tensor
@@ -44,12 +45,15 @@ def descendants(parent: torch.Tensor, split: torch.Tensor) -> Descent:
             identity on its first T entries.
         split: (K,) the old elements that were split, sorted (``unique(parent[T:])``).
     """
-    count = torch.bincount(parent)
-    T = len(count)
-    in_split = torch.cat([split, torch.arange(T, len(parent), device=parent.device)])  # ascending
+    T, device = int(parent.max()) + 1 if len(parent) else 0, parent.device  # parent[:T] is the identity
+    appended = parent[T:]
+    count = torch.ones(T, dtype=torch.int64, device=device).index_add_(0, appended, torch.ones_like(appended))
+    in_split = torch.cat([split, torch.arange(T, len(parent), device=device)])  # ascending
     ordered = in_split.index_select(0, torch.argsort(parent.index_select(0, in_split), stable=True))
-    split_count = torch.where(count > 1, count, 0)
-    return Descent(parent, ordered, torch.cumsum(split_count, 0) - split_count, count)
+    split_count = count.index_select(0, split)
+    start = torch.zeros(T, dtype=torch.int64, device=device)
+    start.index_copy_(0, split, torch.cumsum(split_count, 0) - split_count)  # the runs follow each other
+    return Descent(parent, ordered, start, count)
 
 
 def split_pixels_of(element: torch.Tensor, descent: Descent) -> torch.Tensor:
