@@ -340,6 +340,15 @@ class OcclusionPairs:
     face: torch.Tensor
     weight: torch.Tensor
 
+    @staticmethod
+    def none(device: torch.device) -> "OcclusionPairs":
+        """No pairs (K = 0)."""
+        def empty(*shape, dtype=torch.float64):
+            return torch.zeros(shape, dtype=dtype, device=device)
+
+        return OcclusionPairs(empty(0, 3), empty(0, 3), empty(0, dtype=torch.int64), empty(0, 2),
+                              empty(0, dtype=torch.int64), empty(0))
+
 
 def occlusion_pairs(view: ShotView, wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None,
                     pixels: torch.Tensor | None = None) -> OcclusionPairs:
@@ -380,6 +389,8 @@ def occlusion_pairs(view: ShotView, wanted: torch.Tensor | None = None, plane_id
         keep = torch.ones(len(pair), dtype=torch.bool, device=pair.device) if wanted is None else \
             wanted.index_select(0, ea) | wanted.index_select(0, eb)
     keep = flatnonzero(keep)
+    if len(keep) == 0:  # often so in a refining shot's later passes
+        return OcclusionPairs.none(view.eye.device)
     pair = pair.index_select(0, keep)
     a, b, ea, eb = a.index_select(0, pair), b.index_select(0, pair), ea.index_select(0, keep), eb.index_select(0, keep)
     # Without plane ids most such pairs are coplanar neighbours on a finely meshed surface:
