@@ -25,7 +25,6 @@ import warnings
 from dataclasses import dataclass
 from functools import cached_property
 
-import numpy as np
 import torch
 from torch.func import jacfwd
 
@@ -126,7 +125,7 @@ def boundary_pairs(label: torch.Tensor, resolution: int) -> torch.Tensor:
     horizontal = ((image[:, :-1] != image[:, 1:]) & seen[:, :-1] & seen[:, 1:]).reshape(-1)
     vertical = ((image[:-1] != image[1:]) & seen[:-1] & seen[1:])[same_face.numpy() if cpu else same_face].reshape(-1)
     if cpu:
-        return torch.from_numpy(np.concatenate([np.flatnonzero(horizontal), np.flatnonzero(vertical) + len(horizontal)]))
+        horizontal, vertical = torch.from_numpy(horizontal), torch.from_numpy(vertical)
     return torch.cat([flatnonzero(horizontal), flatnonzero(vertical) + len(horizontal)])
 
 

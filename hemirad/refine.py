@@ -118,14 +118,14 @@ class Refiner:
         while len(chosen):
             self.splits += len(chosen)
             V = rounds.num_vertices
-            corners = rounds.triangles.index_select(0, chosen).reshape(-1)
+            corner_vertices = rounds.triangles.index_select(0, chosen).reshape(-1)
             rounds.split(chosen)
             if self.options.pattern != "pattern2":
                 break
             # a new violation has a vertex of a split triangle (or a new one)
             near = torch.ones(rounds.num_vertices, dtype=torch.bool, device=device)
             near[:V] = False
-            near[corners] = True
+            near[corner_vertices] = True
             chosen = rounds.unbalanced(near)
             room = (self.options.max_elements - rounds.num_elements) // (self.children - 1)
             chosen = chosen[:max(room, 0)]  # the budget wins over grading

@@ -261,7 +261,6 @@ class SplitRounds:
         # the midpoint index, once needed (pattern 2 looks midpoints up; pattern 1 makes none)
         self._index = mesh.__dict__.get("_midpoint_index")
         self._new_midpoints = []  # (keys, midpoints) made by each round, not yet in _index
-        self._replaced = []  # per round, the split triangles of the mesh before (their rows changed)
 
     @property
     def num_elements(self) -> int:
@@ -307,7 +306,6 @@ class SplitRounds:
         self._parent.append(self._parent.values.index_select(0, chosen).repeat_interleave(others))
         self._vertices.append(new_vertices.to(self._vertices.buffer.dtype))
         self._edge_parents.append(new_parents)
-        self._replaced.append(chosen[chosen < self.before.num_elements])
         new_midpoints = flatnonzero(new_parents[:, 0] >= 0)
         if self._index is not None and len(new_midpoints):
             self._new_midpoints.append(
@@ -334,7 +332,7 @@ class SplitRounds:
         if self._index is not None:
             mesh.__dict__["_midpoint_index"] = self._index
         T = old.num_elements
-        replaced = torch.unique(torch.cat(self._replaced)) if self._replaced else parent[:0]
+        replaced = torch.unique(parent[T:])  # a triangle was split if and only if children were appended to it
         mesh.inherit_geometry(old, torch.cat([replaced, torch.arange(T, len(parent), device=parent.device)]))
         if "plane_ids" in old.__dict__:  # children lie in their parent's plane
             mesh.__dict__["plane_ids"] = inherit(old.plane_ids, parent)
