@@ -64,32 +64,30 @@ def gradient_score(ctx: ShotContext, rows: torch.Tensor | None = None) -> torch.
 
 
 def gradient_score_bound(ctx: ShotContext, rows: torch.Tensor, distance: torch.Tensor,
-                         secant_sums: torch.Tensor) -> torch.Tensor:
+                         sine_sums: torch.Tensor) -> torch.Tensor:
     """(R,) an upper bound of the interior (frozen-visibility) part of ``gradient_score`` for
     the receivers ``rows``, from what the render gave without any hit point: where it is
     under the threshold, that part's Jacobian need not be computed.
 
-    Each pixel's kernel K_q = w_q A B / (A0 B0) (r0 / r)^4 has |dK_q/dc| <= K_q (1/A + 1/B + 4/r),
-    with A = n_s . (y - c) its height above the shooter's plane, B = n_j . (c - y) the eye's
-    height above the receiver's plane and r = |y - c| >= B; at c0, K_q = w_q. Over a receiver
-    B is one number, and A = r cos(theta_q) >= B cos(theta_q), theta_q the pixel's angle from
-    the shooter's normal, so |dF_sj/dc| <= (sum_q w_q sec(theta_q) + 5 F_sj) / B. A receiver
-    wholly above the shooter's plane also has A >= A_min, its lowest corner's height, hence
-    F_sj (1/A_min + 5/B); the smaller of the two is taken.
+    Each pixel's kernel K_q = w_q A B / (A0 B0) (r0 / r)^4, with A = n_s . (y - c) its height
+    above the shooter's plane, B = n_j . (c - y) the eye's height above the receiver's plane
+    and r = |y - c|, has the gradient K_q (-n_s / A + n_j / B + 4 (y - c) / r^2); at c0,
+    K_q = w_q. The score dots the gradient with the shooter's corner offsets P_k - G, which
+    lie in its plane, so only the gradient's part in that plane counts: n_s drops out, n_j
+    leaves sin(alpha_j) (alpha_j between n_j and n_s) and y - c leaves r sin(theta_q)
+    (theta_q the pixel ray's angle from n_s). Over a receiver B is one number and r >= B, so
+    |P dF_sj/dc| <= (sin(alpha_j) F_sj + 4 sum_q w_q sin(theta_q)) / B.
 
     Args:
         rows: (R,) receivers; distance: (R,) their n_j . (p_j - eye) (``ShotView.distance_of``);
-        secant_sums: (R,) their sum_q w_q sec(theta_q) (``ShotView.secant_sums``).
+        sine_sums: (R,) their sum_q w_q sin(theta_q) (``ShotView.sine_sums``).
     """
-    corners = ctx.mesh.corners_of(rows)  # (R, 3, 3)
-    lowest = ((corners - ctx.eye) @ ctx.normal).amin(dim=1)  # (R,) A_min
-    height = distance.abs()  # B
-    F = _rows(ctx.form_factors, rows)
-    by_corner = torch.where(lowest > 0, F * (1.0 / lowest.clamp(min=1e-300) + 5.0 / height), torch.inf)
-    by_pixel = (secant_sums + 5.0 * F) / height
+    normals = ctx.mesh.normals.index_select(0, rows)  # (R, 3)
+    sin_alpha = torch.linalg.cross(normals, ctx.normal.expand_as(normals), dim=1).norm(dim=1)
+    in_plane = (sin_alpha * _rows(ctx.form_factors, rows) + 4.0 * sine_sums) / distance.abs()
     shooter = ctx.mesh.corners_of(ctx.shooter)
     reach = (shooter - shooter.mean(0)).norm(dim=1).max()  # max_k |P_k - G|
-    return _rows(ctx.luminance_per_form_factor, rows) * torch.minimum(by_corner, by_pixel) * reach
+    return _rows(ctx.luminance_per_form_factor, rows) * in_plane * reach
 
 
 def receiver_score(ctx: ShotContext, rows: torch.Tensor | None = None) -> torch.Tensor:
@@ -144,7 +142,7 @@ class Criterion:
     score: Callable[[ShotContext, torch.Tensor | None], torch.Tensor]
     jacobian: str | None  # "full", "interior" or None: which form-factor gradient it reads
     radiosity_units: bool = True  # False: the threshold is a length
-    # (ctx without its jacobian, rows, ShotView.distance_of(rows), ShotView.secant_sums rows) ->
+    # (ctx without its jacobian, rows, ShotView.distance_of(rows), ShotView.sine_sums rows) ->
     # (rows,) an upper bound of the score's interior part, for leaving receivers out of the
     # interior Jacobian; None: none
     interior_bound: Callable[[ShotContext, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None

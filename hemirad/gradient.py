@@ -56,11 +56,11 @@ def pixel_directions(resolution: int) -> torch.Tensor:
 
 
 @cached_per_device
-def pixel_secants(resolution: int) -> torch.Tensor:
-    """(P,) 1 / cos of each pixel ray's angle from the hemicube's axis (the local z). Do not
+def pixel_sines(resolution: int) -> torch.Tensor:
+    """(P,) the sine of each pixel ray's angle from the hemicube's axis (the local z). Do not
     modify (cached)."""
     d = pixel_directions(resolution)
-    return d.norm(dim=0) / d[2]
+    return d[:2].norm(dim=0) / d.norm(dim=0)
 
 
 @cached_per_device
@@ -214,16 +214,15 @@ class ShotView:
         (N,) elements ``k``, whose ``distance`` (N,) is given."""
         return self.eye[:, None] + (distance / (directions * self.normals_of(k)).sum(0)) * directions
 
-    def secant_sums(self, pixels: torch.Tensor | None = None) -> torch.Tensor:
-        """(T,) per element, the sum over its front-facing pixels of w_q sec(theta_q), theta_q
+    def sine_sums(self, pixels: torch.Tensor | None = None) -> torch.Tensor:
+        """(T,) per element, the sum over its front-facing pixels of w_q sin(theta_q), theta_q
         the angle between the pixel's ray and the shooter's normal (``gradient_score_bound``);
         over ``pixels`` (N,) only when given (elements none of them see get 0 or a partial sum)."""
-        secant = pixel_secants(self.resolution, self.eye.device)
-        if pixels is None:
-            return element_form_factors(self.element, self.front, self.weight * secant, len(self.normals))
-        weight = self.weight.index_select(0, pixels) * secant.index_select(0, pixels)
-        return element_form_factors(self.element.index_select(0, pixels), self.front.index_select(0, pixels),
-                                    weight, len(self.normals))
+        sine = pixel_sines(self.resolution, self.eye.device)
+        element, front, weight = self.element, self.front, self.weight
+        if pixels is not None:
+            element, front, weight, sine = (x.index_select(0, pixels) for x in (element, front, weight, sine))
+        return element_form_factors(element, front, weight * sine, len(self.normals))
 
     def wanted_pixels(self, wanted: torch.Tensor | None, pixels: torch.Tensor | None = None,
                       front: bool = False) -> torch.Tensor:

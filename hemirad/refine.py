@@ -81,7 +81,7 @@ class Refiner:
         candidates, rows = self._candidates(ctx)
         out = torch.zeros_like(candidates)
         bound = self.criterion.interior_bound(ctx, rows, view.distance_of(rows),
-                                              view.secant_sums(pixels).index_select(0, rows))
+                                              view.sine_sums(pixels).index_select(0, rows))
         out[rows] = bound * (1.0 + 1e-9) > self.threshold  # room for rounding: at the threshold, the exact score
         return out
 
