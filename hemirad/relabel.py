@@ -85,16 +85,16 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
     pixel = torch.repeat_interleave(torch.arange(len(split_pixels), device=device), n_candidates)
     first = torch.cumsum(n_candidates, 0) - n_candidates
     rank = torch.arange(len(pixel), device=device) - first[pixel]
-    candidate = descent.ordered[descent.start[old_of_pixel][pixel] + rank]
-    y = hits[:, pixel].T  # (M, 3)
-    a, b, c = mesh.corners_of(candidate).unbind(dim=1)
-    n = mesh.normals.index_select(0, candidate)
-
-    def inside(p, q):  # signed distance of y from the edge p -> q, positive on the left
-        edge = q - p
-        return row_sums(torch.linalg.cross(edge, y - p) * n) / edge.norm(dim=1)
-
-    margin = torch.minimum(torch.minimum(inside(a, b), inside(b, c)), inside(c, a))
+    slot = descent.start.index_select(0, old_of_pixel).index_select(0, pixel) + rank  # (M,) into ordered
+    candidate = descent.ordered.index_select(0, slot)
+    # Each descendant's three edges as inward unit normals in its plane and offsets, made once
+    # per descendant: a pair's distances are then three dot products.
+    inward, offset = _edge_planes(mesh, descent.ordered)  # (K, 3, 3), (K, 3)
+    y = hits.index_select(1, pixel)  # (3, M)
+    planes = inward.index_select(0, slot)  # (M, 3 edges, 3)
+    distance = (planes[:, :, 0] * y[0, :, None] + planes[:, :, 1] * y[1, :, None]
+                + planes[:, :, 2] * y[2, :, None]) - offset.index_select(0, slot)  # (M, 3)
+    margin = torch.minimum(torch.minimum(distance[:, 0], distance[:, 1]), distance[:, 2])
     best = torch.full((len(split_pixels),), -torch.inf, dtype=margin.dtype, device=device).scatter_reduce(
         0, pixel, margin, "amax")
     is_best = margin == best[pixel]
@@ -102,6 +102,18 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
     chosen = chosen.scatter_reduce(0, pixel[is_best], candidate[is_best], "amin")  # ties: the lower index
     out[split_pixels] = chosen
     return out
+
+
+def _edge_planes(mesh: Mesh, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """For the triangles ``rows`` (K,): (K, 3, 3) the unit normal of each edge a -> b, b -> c,
+    c -> a within the triangle's plane, pointing inside, and (K, 3) its offset: a point y of
+    the plane lies at the signed distance ``inward . y - offset`` from the edge's line."""
+    corners = mesh.corners_of(rows)  # (K, 3, 3)
+    start, end = corners, corners.roll(-1, dims=1)
+    n = mesh.normals.index_select(0, rows)[:, None, :].expand_as(corners)
+    inward = torch.linalg.cross(n, end - start, dim=2)  # n x edge: to the left of the edge
+    inward = inward / inward.norm(dim=2, keepdim=True)
+    return inward, (inward * start).sum(2)
 
 
 def relabel_form_factors(form_factors: torch.Tensor, descent: Descent, element: torch.Tensor,
