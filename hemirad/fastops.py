@@ -6,11 +6,36 @@ over a three-wide inner dimension), ``x.index_select(0, i)`` 3-5x faster than ``
 for a 1-D int64 index (the solver's hot paths use it directly), NumPy's flatnonzero about
 8x faster than ``torch.nonzero`` on a CPU tensor, and NumPy's comparisons and gathers of
 flags 1.5-3x faster than torch's. All give the same numbers, bit for bit.
+
+Each helper has a host form (NumPy, for CPU tensors) and a device form (plain torch ops, the
+one CUDA runs); ``device_forms`` makes CPU tensors take the device form too, which is how
+the device forms are tested on a machine without a GPU.
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 import torch
+
+_device_forms_only = False
+
+
+def on_host(x: torch.Tensor) -> bool:
+    """Whether ``x`` takes a helper's host (NumPy) form: it is on the CPU, outside ``device_forms``."""
+    return x.device.type == "cpu" and not _device_forms_only
+
+
+@contextmanager
+def device_forms():
+    """Within the block every tensor takes the device form (the torch ops a CUDA tensor
+    takes), whatever its device."""
+    global _device_forms_only
+    before, _device_forms_only = _device_forms_only, True
+    try:
+        yield
+    finally:
+        _device_forms_only = before
 
 
 def row_sums(x: torch.Tensor) -> torch.Tensor:
@@ -21,7 +46,7 @@ def row_sums(x: torch.Tensor) -> torch.Tensor:
 def flatnonzero(mask: torch.Tensor) -> torch.Tensor:
     """(N,) int64 the indices where the 1-D bool ``mask`` is true: ``torch.nonzero(mask)``
     flattened (on the CPU by NumPy, in the same order; the result shares its memory)."""
-    if mask.device.type == "cpu":
+    if on_host(mask):
         return torch.from_numpy(np.flatnonzero(mask.numpy()))
     return torch.nonzero(mask).reshape(-1)
 
@@ -30,7 +55,7 @@ def marked_positions(index: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
     """(N,) int64 the positions i where ``index[i] >= 0`` and ``table[index[i]]``: for (P,)
     per-pixel elements (-1 for none) and a (T,) bool table of elements,
     ``flatnonzero((index >= 0) & table[index.clamp(min=0)])``."""
-    if index.device.type == "cpu":  # a leading False takes the -1s
+    if on_host(index):  # a leading False takes the -1s
         return torch.from_numpy(np.flatnonzero(np.concatenate(([False], table.numpy()))[index.numpy() + 1]))
     return flatnonzero((index >= 0) & table.index_select(0, index.clamp(min=0)))
 
@@ -38,7 +63,7 @@ def marked_positions(index: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
 def rows_touching(rows: torch.Tensor, marked: torch.Tensor) -> torch.Tensor:
     """(n,) int64 the rows of ``rows`` (N, 3), e.g. triangles' vertex indices, with an entry
     marked in the bool table ``marked``, in order."""
-    if rows.device.type == "cpu":
+    if on_host(rows):
         hit = marked.numpy()[rows.numpy()]
         return torch.from_numpy(np.flatnonzero(hit[:, 0] | hit[:, 1] | hit[:, 2]))
     hit = marked.index_select(0, rows.reshape(-1)).reshape(-1, 3)
@@ -48,6 +73,6 @@ def rows_touching(rows: torch.Tensor, marked: torch.Tensor) -> torch.Tensor:
 def take_or_none(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """(N,) int64 ``table[index]``, -1 where ``index`` is -1 (no element): ``torch.where(index
     >= 0, table[index.clamp(min=0)], -1)`` for a (T,) int64 table."""
-    if index.device.type == "cpu":  # a leading -1 takes the -1s
+    if on_host(index):  # a leading -1 takes the -1s
         return torch.from_numpy(np.concatenate(([-1], table.numpy()))[index.numpy() + 1])
     return torch.where(index >= 0, table.index_select(0, index.clamp(min=0)), -1)

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from .device import cached_per_device
+from .fastops import on_host
 from .hemicube import BACK_FACE_BIT, FACES, Hemicube, face_viewports, tangent_frame
 from .mesh import Mesh
 
@@ -101,7 +102,7 @@ def sum_by_index(index: torch.Tensor, values: torch.Tensor, size: int) -> torch.
     On the CPU a bincount (a sequential sum in pixel order); on CUDA an index_add, which
     ``runtime.deterministic`` makes sum in a fixed order (bincount has no such mode).
     """
-    if index.device.type == "cpu":
+    if on_host(index):
         return torch.bincount(index, weights=values, minlength=size)
     return torch.zeros(size, dtype=values.dtype, device=values.device).index_add_(0, index, values)
 

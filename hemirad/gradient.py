@@ -29,7 +29,7 @@ import torch
 from torch.func import jacfwd
 
 from .device import cached_per_device
-from .fastops import flatnonzero, marked_positions, row_sums, take_or_none
+from .fastops import flatnonzero, marked_positions, on_host, row_sums, take_or_none
 from .formfactor import element_form_factors, hemicube_directions
 from .hemicube import FACES, face_viewports
 
@@ -119,7 +119,7 @@ def boundary_pairs(label: torch.Tensor, resolution: int) -> torch.Tensor:
     """
     R = resolution
     same_face = same_face_rows(R, label.device)
-    cpu = label.device.type == "cpu"
+    cpu = on_host(label)
     image = (label.numpy() if cpu else label).reshape(3 * R, R)  # NumPy compares int64 ~3x faster
     seen = image >= 0
     horizontal = ((image[:, :-1] != image[:, 1:]) & seen[:, :-1] & seen[:, 1:]).reshape(-1)

@@ -18,6 +18,7 @@ import torch
 import hemirad
 from hemirad.device import select_device
 from hemirad.errors import HemiradInputError
+from hemirad.fastops import device_forms
 from hemirad.meshing import build_mesh
 from hemirad.refine import Refiner
 from hemirad.solver import ProgressiveSolver
@@ -53,6 +54,18 @@ def test_a_refining_solve_makes_no_tensor_on_the_default_device(criterion):
     got = refining_solve(criterion, default_device="meta")
     for key in ("radiosity", "unshot", "absorbed", "escaped"):
         assert got[key].device.type == "cpu" and torch.equal(got[key], expected[key]), key
+    assert torch.equal(got["mesh"]["triangles"], expected["mesh"]["triangles"])
+
+
+@pytest.mark.parametrize("criterion", sorted(THRESHOLDS))
+def test_the_device_forms_of_the_fast_idioms_give_the_same_solve(criterion):
+    # What a CUDA solve runs in place of the NumPy forms CPU tensors take (fastops.py):
+    # checked here on the CPU, bit for bit, so that a GPU machine only adds the device.
+    expected = refining_solve(criterion)
+    with device_forms():
+        got = refining_solve(criterion)
+    for key in ("radiosity", "unshot", "absorbed", "escaped"):
+        assert torch.equal(got[key], expected[key]), key
     assert torch.equal(got["mesh"]["triangles"], expected["mesh"]["triangles"])
 
 
