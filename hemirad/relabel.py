@@ -87,10 +87,11 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
     rank = torch.arange(len(pixel), device=device) - first[pixel]
     slot = descent.start.index_select(0, old_of_pixel).index_select(0, pixel) + rank  # (M,) into ordered
     candidate = descent.ordered.index_select(0, slot)
-    # Each descendant's three edges as inward unit normals in its plane and offsets, made once
-    # per descendant: a pair's distances are then three dot products.
-    inward, offset = _edge_planes(mesh, descent.ordered)  # (K, 3, 3), (K, 3)
-    y = hits.index_select(1, pixel)  # (3, M)
+    # Each descendant's three edges as inward unit normals in its plane, with offsets from its
+    # first corner, made once per descendant: a pair's distances are then three dot products
+    # of the hit point relative to that corner (small numbers, as precise as the element).
+    inward, offset, corner = _edge_planes(mesh, descent.ordered)  # (K, 3, 3), (K, 3), (K, 3)
+    y = hits.index_select(1, pixel) - corner.index_select(0, slot).T  # (3, M)
     planes = inward.index_select(0, slot)  # (M, 3 edges, 3)
     distance = (planes[:, :, 0] * y[0, :, None] + planes[:, :, 1] * y[1, :, None]
                 + planes[:, :, 2] * y[2, :, None]) - offset.index_select(0, slot)  # (M, 3)
@@ -104,16 +105,18 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
     return out
 
 
-def _edge_planes(mesh: Mesh, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """For the triangles ``rows`` (K,): (K, 3, 3) the unit normal of each edge a -> b, b -> c,
-    c -> a within the triangle's plane, pointing inside, and (K, 3) its offset: a point y of
-    the plane lies at the signed distance ``inward . y - offset`` from the edge's line."""
+def _edge_planes(mesh: Mesh, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """For the triangles ``rows`` (K,) with corners a, b, c: (K, 3, 3) the unit normal of each
+    edge a -> b, b -> c, c -> a within the triangle's plane, pointing inside, (K, 3) its
+    offset and (K, 3) the corner a: a point y of the plane lies at the signed distance
+    ``inward . (y - a) - offset`` from the edge's line."""
     corners = mesh.corners_of(rows)  # (K, 3, 3)
     start, end = corners, corners.roll(-1, dims=1)
     n = mesh.normals.index_select(0, rows)[:, None, :].expand_as(corners)
     inward = torch.linalg.cross(n, end - start, dim=2)  # n x edge: to the left of the edge
     inward = inward / inward.norm(dim=2, keepdim=True)
-    return inward, (inward * start).sum(2)
+    first = corners[:, 0]
+    return inward, (inward * (start - first[:, None, :])).sum(2), first
 
 
 def relabel_form_factors(form_factors: torch.Tensor, descent: Descent, element: torch.Tensor,
