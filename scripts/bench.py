@@ -10,7 +10,8 @@ against element count. For reading, never for asserting.
    Jacobian), refinement (criterion, selection, splitting, re-upload) and
    update, and the peak resident memory; then where the time goes inside (the same solve
    again under cProfile: the functions with the most time of their own), so that the
-   next bottleneck is visible.
+   next bottleneck is visible; and the number of torch operators per shot (the solve once
+   more, counted: on a GPU each that computes is a kernel launch).
 2. The scaling table: the same room meshed to about 1k, 10k, 100k and 1M elements, no
    refinement, ``--shots`` shots after a warm-up shot, seconds per shot by phase.
 
@@ -30,6 +31,7 @@ import time
 from pathlib import Path
 
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 import hemirad
 from hemirad.device import select_device
@@ -125,6 +127,36 @@ def profile(threshold: float, shots: int, resolution: int, device: torch.device,
     return lines
 
 
+class _OperatorCount(TorchDispatchMode):
+    """Counts the ATen operators torch runs, views (no data touched) apart."""
+
+    def __init__(self):
+        super().__init__()
+        self.computing = self.views = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        out = func(*args, **(kwargs or {}))
+        if func.is_view:  # its output aliases an input
+            self.views += 1
+        else:
+            self.computing += 1
+        return out
+
+
+def operator_counts(threshold: float, shots: int, resolution: int, device: torch.device) -> list[str]:
+    """The adaptive solve once more, counting torch's operators: on a GPU each one that
+    computes is at least one kernel launch, so their number per shot bounds how fast a shot
+    can be however fast the GPU."""
+    scene = adaptive_scene(threshold, shots, resolution, device)
+    count = _OperatorCount()
+    with count:
+        result = hemirad.solve(scene)
+    done = result.stats["shots"]
+    return [f"Torch operators per shot (the same solve once more, counted): "
+            f"{count.computing / done:,.0f} that compute, {count.views / done:,.0f} views "
+            f"({result.mesh.num_elements} elements at the end)."]
+
+
 def per_shot(scene, shots: int, resolution: int, device: torch.device) -> dict:
     mesh = build_mesh(scene)
     reflectance = scene.reflectance_table()[mesh.material]
@@ -186,6 +218,7 @@ def main() -> None:
     run, adaptive_lines = adaptive(*adaptive_args, repeat=1 if args.quick else max(args.repeat, 1))
     print("\n".join(adaptive_lines), "\n", flush=True)
     profile_lines = profile(*adaptive_args) if args.profile else []
+    profile_lines += ["", *operator_counts(*adaptive_args)]
     print("\n".join(profile_lines), "\n", flush=True)
     rows, scaling_lines = scaling(targets, shots, adaptive_args[2], device)
     command = "python scripts/bench.py" + (f" --device {args.device}" if device.type == "cuda" else "")
