@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .fastops import flatnonzero, marked_positions, row_sums
+from .fastops import flatnonzero, marked_positions
 from .mesh import Mesh
 from .split import inherit
 
