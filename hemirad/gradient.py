@@ -22,7 +22,7 @@ Jacobian from one backward pass, which torch runs an order of magnitude faster.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from functools import cached_property
 
 import torch
@@ -34,9 +34,11 @@ from .formfactor import element_form_factors, hemicube_directions
 from .hemicube import FACES, face_viewports
 
 # PyTorch's own forward-mode set-up scripts its decompositions on first use and warns that
-# torch.jit.script is deprecated: nothing a user of hemirad can act on.
-warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*deprecated", category=FutureWarning,
-                        module=r"torch\.jit")
+# torch.jit.script is deprecated (a FutureWarning in torch 2.15, a DeprecationWarning in
+# 2.11): nothing a user of hemirad can act on.
+for _category in (FutureWarning, DeprecationWarning):
+    warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*deprecated", category=_category,
+                            module=r"torch\.jit")
 
 
 @cached_per_device
@@ -175,6 +177,12 @@ class ShotView:
         eye = torch.as_tensor(eye, dtype=torch.float64, device=element.device)
         return ShotView(eye, torch.as_tensor(frame, dtype=torch.float64, device=element.device), element.reshape(-1),
                         front.reshape(-1), weight.reshape(-1), normals, points, weight.shape[-1])
+
+    def copy(self) -> "ShotView":
+        """The same view over copies of its tensors (made outside ``torch.inference_mode``,
+        they are ones autograd may use)."""
+        return replace(self, **{f.name: getattr(self, f.name).clone() for f in fields(self)
+                                if isinstance(getattr(self, f.name), torch.Tensor)})
 
     @cached_property
     def distance(self) -> torch.Tensor:
@@ -503,11 +511,19 @@ def form_factor_gradient(view: ShotView, interior: bool = True, shadow_edges: bo
             The rows of the others then hold their shadow-edge term alone.
         mode: "reverse", one backward pass over per-term copies of the eye
             (``eye_gradients``), or "forward", ``torch.func.jacfwd`` with three tangents
-            (the paper's bottom-up mode): the same derivative, to rounding. Under
-            ``torch.inference_mode`` the forward mode is used.
+            (the paper's bottom-up mode): the same derivative, to rounding.
+    Under ``torch.inference_mode``, where autograd records nothing, the view's tensors are
+    copied out of it and the derivative is taken outside it.
     """
     if mode not in ("reverse", "forward"):
         raise ValueError(f"mode must be 'reverse' or 'forward', not {mode!r}")
+    if torch.is_inference_mode_enabled():
+        with torch.inference_mode(False):
+            def copy(t):
+                return None if t is None else t.clone()
+
+            return form_factor_gradient(view.copy(), interior, shadow_edges, copy(wanted), copy(plane_ids),
+                                        copy(pixels), copy(interior_wanted), mode)
     T = len(view.normals)
     pairs = occlusion_pairs(view, wanted, plane_ids, pixels) if shadow_edges else None
     if interior_wanted is not None:
@@ -528,7 +544,7 @@ def form_factor_gradient(view: ShotView, interior: bool = True, shadow_edges: bo
     # (index, terms) per term: each term's value is a function of the eye alone, summed by index
     parts = ([(patches.element, lambda c: interior_terms(c, patches))] if patches is not None else []) + \
             ([(pairs.far_element, lambda c: shadow_edge_terms(c, view, pairs))] if pairs is not None else [])
-    if mode == "forward" or torch.is_inference_mode_enabled():  # inference mode allows no backward pass
+    if mode == "forward":
         return jacfwd(lambda c: sum(summed_rows(index, terms(c), T) for index, terms in parts))(view.eye)
     J = torch.zeros(T, 3, dtype=torch.float64, device=view.eye.device)
     for index, terms in parts:
