@@ -261,6 +261,7 @@ class SplitRounds:
         # the midpoint index, once needed (pattern 2 looks midpoints up; pattern 1 makes none)
         self._index = mesh.__dict__.get("_midpoint_index")
         self._new_midpoints = []  # (keys, midpoints) made by each round, not yet in _index
+        self._find = None  # the current mesh's midpoint lookup, once made (a round renews it)
 
     @property
     def num_elements(self) -> int:
@@ -276,7 +277,13 @@ class SplitRounds:
         return self._triangles.values
 
     def midpoint_lookup(self):
-        """``midpoint_lookup`` of the current mesh."""
+        """``midpoint_lookup`` of the current mesh (made once per round: a round's grading
+        check and the next round's split share it)."""
+        if self._find is None:
+            self._find = self._make_lookup()
+        return self._find
+
+    def _make_lookup(self):
         if self._index is None:
             self._index = _midpoint_index(self.before)
         if not self._new_midpoints:
@@ -310,6 +317,7 @@ class SplitRounds:
         if self._index is not None and len(new_midpoints):
             self._new_midpoints.append(
                 (_edge_keys(new_parents[new_midpoints, 0], new_parents[new_midpoints, 1]), V + new_midpoints))
+            self._find = None
 
     def unbalanced(self, near: torch.Tensor | None = None) -> torch.Tensor:
         """``unbalanced`` of the current mesh; ``near`` (V,) over its vertices."""
