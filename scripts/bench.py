@@ -87,8 +87,9 @@ def adaptive(threshold: float, shots: int, resolution: int, device: torch.device
         result = hemirad.solve(scene)
         runs.append((time.perf_counter() - start, result))
         print(f"adaptive solve: {runs[-1][0]:.1f} s", flush=True)
-    walls = sorted(wall for wall, _ in runs)
-    wall, result = sorted(runs, key=lambda run: run[0])[(repeat - 1) // 2]
+    runs.sort(key=lambda run: run[0])
+    walls = [wall for wall, _ in runs]
+    wall, result = runs[(repeat - 1) // 2]
     phases = result.stats["seconds"]["solve_phases"]
     run = {"elements": result.mesh.num_elements, "initial": result.stats["initial_elements"],
            "shots": result.stats["shots"], "wall": wall, "walls": walls, "mesh": result.stats["seconds"]["mesh"],
