@@ -25,8 +25,8 @@ from pathlib import Path
 
 import torch
 
-from .errors import HemiradInputError
-from .scene import MeshFile, Scene
+from hemirad.core.errors import HemiradInputError
+from hemirad.scene.model import MeshFile, Scene
 
 FORMAT = 1
 FILENAME = "checkpoint.pt"
@@ -69,7 +69,7 @@ def fingerprint(scene: Scene) -> dict[str, object]:
     are left out: a finished run may be continued with more shots, or shown differently.
     The hemirad version is in because a code change may change the shots.
     """
-    from . import __version__
+    from hemirad import __version__
 
     materials = [dataclasses.asdict(m) for m in scene.materials]
     return {

@@ -9,7 +9,7 @@ import warnings
 from dataclasses import replace
 from pathlib import Path
 
-from .errors import HemiradInputError, HemiradWarning
+from hemirad.core.errors import HemiradInputError, HemiradWarning
 
 
 def _number(text: str, kind=float):
@@ -43,7 +43,7 @@ def _depth(text: str) -> int:
 
 
 def _element_budget(text: str) -> int:
-    from .loader import MAX_TRIANGLES
+    from hemirad.scene.loader import MAX_TRIANGLES
 
     value = _positive_int(text)
     if value > MAX_TRIANGLES:
@@ -59,7 +59,7 @@ def _resolution(text: str) -> int:
 
 
 def _device(text: str) -> str:
-    from .device import DEVICE_NAMES, is_device_name
+    from hemirad.core.device import DEVICE_NAMES, is_device_name
 
     if not is_device_name(text):
         raise argparse.ArgumentTypeError(f"expected one of {', '.join(DEVICE_NAMES)}, got {text!r}")
@@ -167,9 +167,9 @@ class _Progress:
 
 def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     """Solve and write as ``args`` say; ``argv`` (the command line) is echoed in the resume hint."""
-    from . import checkpoint as checkpoints
-    from .loader import load_scene
-    from .pipeline import prepare_output_folder, solve
+    from hemirad import checkpoint as checkpoints
+    from hemirad.scene.loader import load_scene
+    from hemirad.pipeline import prepare_output_folder, solve
 
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
     scene = load_scene(args.scene)
@@ -210,7 +210,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
 
 def _interrupted(checkpoint: Path | None, argv: list[str] | None) -> str:
     """What Ctrl-C leaves behind and, when there is a checkpoint, the command that continues."""
-    from . import checkpoint as checkpoints
+    from hemirad import checkpoint as checkpoints
 
     shots = checkpoints.saved_shots(checkpoint) if checkpoint is not None else None
     if shots is None:

@@ -18,19 +18,21 @@ from typing import Callable
 import numpy as np
 import torch
 
-from . import checkpoint as checkpoints
-from . import display, export, gltf
-from .errors import HemiradInputError, SceneError
-from .device import select_device
-from .gl import GLContext
-from .mesh import Mesh
-from .meshing import build_mesh
-from .meshview import pick_surface, surface_view
-from .refine import Refiner
-from .render import render_view
-from .scene import Scene
-from .solver import ProgressiveSolver, ShotReport, ambient_term
-from .split import angle_quality
+from hemirad import checkpoint as checkpoints
+from hemirad.output import display
+from hemirad.output import export
+from hemirad.output import gltf
+from hemirad.core.errors import HemiradInputError, SceneError
+from hemirad.core.device import select_device
+from hemirad.transport.gl import GLContext
+from hemirad.geometry.mesh import Mesh
+from hemirad.scene.meshing import build_mesh
+from hemirad.output.meshview import pick_surface, surface_view
+from hemirad.adaptive.refine import Refiner
+from hemirad.output.render import render_view
+from hemirad.scene.model import Scene
+from hemirad.transport.solver import ProgressiveSolver, ShotReport, ambient_term
+from hemirad.geometry.split import angle_quality
 
 
 @dataclass

@@ -37,12 +37,13 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 import hemirad
-from hemirad import metrics, reference
-from hemirad.gl import GLContext
-from hemirad.meshing import build_mesh
+from hemirad.evaluation import metrics
+from hemirad.evaluation import reference
+from hemirad.transport.gl import GLContext
+from hemirad.scene.meshing import build_mesh
 from hemirad.pipeline import Result
-from hemirad.refine import Refiner
-from hemirad.solver import ProgressiveSolver
+from hemirad.adaptive.refine import Refiner
+from hemirad.transport.solver import ProgressiveSolver
 
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCES = ROOT / "tests" / "references"

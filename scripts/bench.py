@@ -34,10 +34,10 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import hemirad
-from hemirad.device import select_device
-from hemirad.gl import GLContext
-from hemirad.meshing import build_mesh
-from hemirad.solver import ProgressiveSolver
+from hemirad.core.device import select_device
+from hemirad.transport.gl import GLContext
+from hemirad.scene.meshing import build_mesh
+from hemirad.transport.solver import ProgressiveSolver
 
 ROOT = Path(__file__).resolve().parent.parent
 PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")

@@ -30,8 +30,9 @@ import numpy as np
 import torch
 
 import hemirad
-from hemirad import metrics, reference
-from hemirad.meshing import build_mesh
+from hemirad.evaluation import metrics
+from hemirad.evaluation import reference
+from hemirad.scene.meshing import build_mesh
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -4,10 +4,10 @@ import numpy as np
 import torch
 
 import hemirad
-from hemirad.mesh import Mesh
-from hemirad.meshing import build_mesh, grid_quad
-from hemirad.refine import Refiner
-from hemirad.solver import ProgressiveSolver
+from hemirad.geometry.mesh import Mesh
+from hemirad.scene.meshing import build_mesh, grid_quad
+from hemirad.adaptive.refine import Refiner
+from hemirad.transport.solver import ProgressiveSolver
 
 
 def quad(origin, u, v):

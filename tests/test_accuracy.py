@@ -20,9 +20,10 @@ import pytest
 import torch
 
 import hemirad
-from hemirad import metrics, reference
-from hemirad.meshing import build_mesh
-from hemirad.scene import Camera, Material, Quad, Scene
+from hemirad.evaluation import metrics
+from hemirad.evaluation import reference
+from hemirad.scene.meshing import build_mesh
+from hemirad.scene.model import Camera, Material, Quad, Scene
 
 from patches import closed_box
 
@@ -191,7 +192,7 @@ def test_tone_map_is_exposure_then_srgb():
 def test_radiance_view_of_a_closed_box_is_b_over_pi():
     """Uniform emission E and reflectance rho inside a closed box: B = E / (1 - rho)
     everywhere, so the view compared with a path tracer must read E / (pi (1 - rho))."""
-    from hemirad.solver import ProgressiveSolver
+    from hemirad.transport.solver import ProgressiveSolver
 
     mesh = closed_box(element_size=1.0)  # converges within 1% per element (test_solver)
     rho, emission = 0.5, 2.0
@@ -202,7 +203,7 @@ def test_radiance_view_of_a_closed_box_is_b_over_pi():
         state = solver.run(20000, 1e-6)
     finally:
         solver.close()
-    from hemirad import display
+    from hemirad.output import display
     vertex = display.vertex_values(mesh, state.radiosity)
     camera = Camera(position=(0.5, 0.5, 0.9), look_at=(0.5, 0.5, 0.0), fov=60, width=16, height=12)
     view = reference.radiance_view(mesh, vertex, camera)

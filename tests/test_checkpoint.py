@@ -12,9 +12,9 @@ import torch
 import hemirad
 from hemirad import checkpoint as checkpoints
 from hemirad.cli import main
-from hemirad.errors import HemiradInputError
-from hemirad.export import read_ply_radiosity
-from hemirad.solver import ProgressiveSolver
+from hemirad.core.errors import HemiradInputError
+from hemirad.output.export import read_ply_radiosity
+from hemirad.transport.solver import ProgressiveSolver
 
 SMALL_ROOM = Path(__file__).parent / "data" / "small_room.yaml"
 REFINE = {"pattern": "pattern2", "threshold": 1e-3, "max_depth": 2}

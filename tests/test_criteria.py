@@ -4,10 +4,10 @@ import math
 import pytest
 import torch
 
-from hemirad.criteria import (ShotContext, gradient_score, neighbor_difference_score, partial_visibility_score,
+from hemirad.adaptive.criteria import (ShotContext, gradient_score, neighbor_difference_score, partial_visibility_score,
                               receiver_score, uniform_score)
-from hemirad.analytic import point_to_triangles
-from hemirad.display import luminance
+from hemirad.geometry.analytic import point_to_triangles
+from hemirad.output.display import luminance
 
 from patches import quad, quads_mesh
 
@@ -79,7 +79,7 @@ def test_uniform_score_is_the_longest_edge(grid):
 
 def test_every_criterion_scores_some_rows_as_it_scores_all(grid):
     # The refiner scores only a pass's candidates; their scores must be those of the full pass.
-    from hemirad.criteria import CRITERIA
+    from hemirad.adaptive.criteria import CRITERIA
 
     T = grid.num_elements
     g = torch.Generator().manual_seed(5)

@@ -16,12 +16,12 @@ import pytest
 import torch
 
 import hemirad
-from hemirad.device import select_device
-from hemirad.errors import HemiradInputError
-from hemirad.fastops import device_forms
-from hemirad.meshing import build_mesh
-from hemirad.refine import Refiner
-from hemirad.solver import ProgressiveSolver
+from hemirad.core.device import select_device
+from hemirad.core.errors import HemiradInputError
+from hemirad.core.fastops import device_forms
+from hemirad.scene.meshing import build_mesh
+from hemirad.adaptive.refine import Refiner
+from hemirad.transport.solver import ProgressiveSolver
 
 CUDA = torch.cuda.is_available()
 
@@ -92,12 +92,12 @@ def test_cuda_asked_for_without_one_is_a_clear_error(tmp_path, capsys):
 _CUDA_AGAINST_CPU = textwrap.dedent("""
     import sys, torch
     sys.path.insert(0, {tests!r})
-    from hemirad.gl import GLContext
+    from hemirad.transport.gl import GLContext
     GLContext.get(gpu=True)
     from test_device import refining_solve
     import hemirad
-    from hemirad.formfactor import HemicubeFormFactors
-    from hemirad.meshing import build_mesh
+    from hemirad.transport.formfactor import HemicubeFormFactors
+    from hemirad.scene.meshing import build_mesh
 
     mesh = build_mesh(hemirad.load_scene("cornell_box"))
     cpu, gpu = HemicubeFormFactors(mesh, 128), HemicubeFormFactors(mesh.to("cuda"), 128, device="cuda")
@@ -131,8 +131,8 @@ def test_the_cuda_path_gives_the_cpu_paths_form_factors_and_solutions():
 def test_a_gpu_context_without_a_hardware_egl_device_is_a_clear_error():
     # in a fresh process: opening EGL devices would change which context is current here
     script = textwrap.dedent("""
-        from hemirad.errors import HemiradInputError
-        from hemirad.gl import GLContext
+        from hemirad.core.errors import HemiradInputError
+        from hemirad.transport.gl import GLContext
         try:
             GLContext.get(gpu=True)
         except HemiradInputError as exc:

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from hemirad.display import auto_exposure, luminance, to_srgb8, vertex_values
-from hemirad.mesh import Mesh
+from hemirad.output.display import auto_exposure, luminance, to_srgb8, vertex_values
+from hemirad.geometry.mesh import Mesh
 
 
 def _srgb(x: float) -> float:

@@ -1,7 +1,7 @@
 """The fast idioms give what the plain torch calls they replace give, bit for bit."""
 import torch
 
-from hemirad.fastops import flatnonzero, marked_positions, row_sums, rows_touching, take_or_none
+from hemirad.core.fastops import flatnonzero, marked_positions, row_sums, rows_touching, take_or_none
 
 
 def test_row_sums_is_sum_over_the_three_columns():

@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 import torch
 
-from hemirad.analytic import parallel_rectangles, perpendicular_rectangles, point_to_polygon
-from hemirad.formfactor import HemicubeFormFactors, delta_form_factors, raw_delta_form_factors
-from hemirad.mesh import Mesh
+from hemirad.geometry.analytic import parallel_rectangles, perpendicular_rectangles, point_to_polygon
+from hemirad.transport.formfactor import HemicubeFormFactors, delta_form_factors, raw_delta_form_factors
+from hemirad.geometry.mesh import Mesh
 
 from patches import closed_box, quad, quads_mesh
 

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 import torch
 
-from hemirad.analytic import point_to_polygon
-from hemirad.formfactor import HemicubeFormFactors
-from hemirad.gradient import ReceiverPatches, ShotView, form_factor_jacobian, interior_form_factors, occlusion_pairs
-from hemirad.mesh import Mesh
+from hemirad.geometry.analytic import point_to_polygon
+from hemirad.transport.formfactor import HemicubeFormFactors
+from hemirad.adaptive.gradient import ReceiverPatches, ShotView, form_factor_jacobian, interior_form_factors, occlusion_pairs
+from hemirad.geometry.mesh import Mesh
 
 Z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 
@@ -133,8 +133,8 @@ def test_gradient_of_some_elements_is_their_rows_of_the_full_gradient():
 
 def test_plane_ids_change_no_gradient_and_mark_planar_surfaces():
     import hemirad
-    from hemirad.meshing import build_mesh
-    from hemirad.split import split_triangles
+    from hemirad.scene.meshing import build_mesh
+    from hemirad.geometry.split import split_triangles
 
     scene = hemirad.load_scene("floating")
     mesh = build_mesh(scene)
@@ -170,7 +170,7 @@ def test_a_curved_surface_gives_each_element_its_own_plane_id():
 
 
 def test_pairs_touching_some_pixels_are_those_a_full_scan_finds():
-    from hemirad.gradient import neighbour_pairs, pairs_touching
+    from hemirad.adaptive.gradient import neighbour_pairs, pairs_touching
 
     R = 16
     a, b, _ = neighbour_pairs(R)
@@ -182,7 +182,7 @@ def test_pairs_touching_some_pixels_are_those_a_full_scan_finds():
 
 
 def test_boundary_pairs_found_by_image_shifts_are_those_a_scan_of_every_pair_finds():
-    from hemirad.gradient import boundary_pairs, neighbour_pairs
+    from hemirad.adaptive.gradient import boundary_pairs, neighbour_pairs
 
     R = 16
     a, b, _ = neighbour_pairs(R)
@@ -198,7 +198,7 @@ def test_boundary_pairs_found_by_image_shifts_are_those_a_scan_of_every_pair_fin
 def test_one_backward_pass_gives_the_forward_mode_jacobian(terms):
     # The default (reverse) path gives every pixel's term its own copy of the eye; forward
     # mode (jacfwd, the paper's) differentiates the summed function: the same derivative.
-    from hemirad.gradient import form_factor_gradient
+    from hemirad.adaptive.gradient import form_factor_gradient
 
     for eye in EYES[:2]:
         view, ranges = shot(eye, [RECEIVER, BLOCKER], resolution=64)
@@ -212,7 +212,7 @@ def test_one_backward_pass_gives_the_forward_mode_jacobian(terms):
 
 
 def test_an_unknown_differentiation_mode_is_refused():
-    from hemirad.gradient import form_factor_gradient
+    from hemirad.adaptive.gradient import form_factor_gradient
 
     view, _ = shot(EYES[0], [RECEIVER], resolution=16)
     with pytest.raises(ValueError, match="mode"):
@@ -221,7 +221,7 @@ def test_an_unknown_differentiation_mode_is_refused():
 
 def test_the_gradient_is_the_same_under_inference_mode():
     # A caller may run a solve under torch.inference_mode, where no backward pass can run.
-    from hemirad.gradient import form_factor_gradient
+    from hemirad.adaptive.gradient import form_factor_gradient
 
     view, _ = shot(EYES[0], [RECEIVER, BLOCKER], resolution=32)
     J = form_factor_gradient(view)

@@ -4,10 +4,10 @@ import pytest
 import torch
 
 import hemirad
-from hemirad.formfactor import HemicubeFormFactors
-from hemirad.hemicube import FACES, face_visibility
-from hemirad.meshing import build_mesh
-from hemirad.split import split_triangles
+from hemirad.transport.formfactor import HemicubeFormFactors
+from hemirad.transport.hemicube import FACES, face_visibility
+from hemirad.scene.meshing import build_mesh
+from hemirad.geometry.split import split_triangles
 
 from patches import refined_solve
 

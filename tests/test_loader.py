@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from hemirad.errors import HemiradInputError, SceneError
-from hemirad.loader import MAX_TRIANGLES, bundled_scenes, load_scene, parse_scene
-from hemirad.scene import Box, MeshFile, Quad, Room, Scene
+from hemirad.core.errors import HemiradInputError, SceneError
+from hemirad.scene.loader import MAX_TRIANGLES, bundled_scenes, load_scene, parse_scene
+from hemirad.scene.model import Box, MeshFile, Quad, Room, Scene
 
 DATA = Path(__file__).parent / "data"
 

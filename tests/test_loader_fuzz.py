@@ -16,9 +16,9 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hemirad.errors import HemiradInputError
-from hemirad.loader import SCENES_DIR, load_scene, parse_scene
-from hemirad.scene import Scene
+from hemirad.core.errors import HemiradInputError
+from hemirad.scene.loader import SCENES_DIR, load_scene, parse_scene
+from hemirad.scene.model import Scene
 
 DATA = Path(__file__).parent / "data"
 SOURCES = [*sorted(SCENES_DIR.glob("*.yaml")), DATA / "small_room.yaml"]

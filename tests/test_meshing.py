@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from hemirad.errors import HemiradWarning
-from hemirad.loader import load_scene
-from hemirad.meshing import box_face_corners, build_mesh, grid_quad, smooth_patches
-from hemirad.mesh import Mesh
-from hemirad.scene import Box, Camera, Material, MeshFile, Quad, Room, Scene
+from hemirad.core.errors import HemiradWarning
+from hemirad.scene.loader import load_scene
+from hemirad.scene.meshing import box_face_corners, build_mesh, grid_quad, smooth_patches
+from hemirad.geometry.mesh import Mesh
+from hemirad.scene.model import Box, Camera, Material, MeshFile, Quad, Room, Scene
 
 DATA = Path(__file__).parent / "data"
 TETRA = np.array([(1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)], dtype=np.float64)
@@ -123,7 +123,7 @@ def test_room_normals_point_inward_and_box_normals_outward():
 
 
 def test_room_face_overrides():
-    from hemirad.scene import FaceOverride
+    from hemirad.scene.model import FaceOverride
 
     room = Room((0.0, 0.0, 0.0), (2.0, 2.0, 2.0), "white", 1.0,
                 faces={"floor": FaceOverride(material="lamp", element_size=0.5)}, name="room")

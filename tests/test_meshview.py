@@ -4,15 +4,15 @@ import numpy as np
 import pytest
 import torch
 
-from hemirad.display import (conforming_triangles, conforming_vertex_values, t_vertex_mask,
+from hemirad.output.display import (conforming_triangles, conforming_vertex_values, t_vertex_mask,
                              vertex_values)
-from hemirad.errors import HemiradInputError
-from hemirad.mesh import Mesh
-from hemirad.meshing import grid_quad
-from hemirad.meshview import pick_surface, surface_view, view_basis
-from hemirad.render import render_view
-from hemirad.scene import Camera
-from hemirad.split import split_triangles
+from hemirad.core.errors import HemiradInputError
+from hemirad.geometry.mesh import Mesh
+from hemirad.scene.meshing import grid_quad
+from hemirad.output.meshview import pick_surface, surface_view, view_basis
+from hemirad.output.render import render_view
+from hemirad.scene.model import Camera
+from hemirad.geometry.split import split_triangles
 
 UNIT_SQUARE = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float64)
 

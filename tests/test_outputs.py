@@ -12,8 +12,9 @@ import pytest
 import trimesh
 
 import hemirad
-from hemirad import display, gltf
-from hemirad.export import read_ply_radiosity
+from hemirad.output import display
+from hemirad.output import gltf
+from hemirad.output.export import read_ply_radiosity
 
 SMALL_ROOM = Path(__file__).parent / "data" / "small_room.yaml"
 

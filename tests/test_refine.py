@@ -5,11 +5,11 @@ import torch
 from skimage.metrics import structural_similarity
 
 import hemirad
-from hemirad import display
-from hemirad.meshview import pick_surface, surface_view
-from hemirad.meshing import build_mesh
-from hemirad.refine import Refiner
-from hemirad.solver import ProgressiveSolver
+from hemirad.output import display
+from hemirad.output.meshview import pick_surface, surface_view
+from hemirad.scene.meshing import build_mesh
+from hemirad.adaptive.refine import Refiner
+from hemirad.transport.solver import ProgressiveSolver
 
 from patches import closed_box, refined_solve
 
@@ -61,7 +61,7 @@ def test_refinement_concentrates_in_the_penumbra(criterion, pattern, resolution,
     share_of_area = in_penumbra(np.array([[x, 0.0, z] for x in xs for z in xs])).mean()
     assert share_of_new > factor * share_of_area
     if pattern == "pattern2":  # graded 2:1 (the budget, which could stop grading, is far)
-        from hemirad.split import unbalanced
+        from hemirad.geometry.split import unbalanced
         assert len(unbalanced(mesh)) == 0
 
 
@@ -141,10 +141,10 @@ def interior_scores_and_bounds(name: str, resolution: int, shooters) -> list[tup
     """Per shooter (an index, or a function of the emission giving one): the gradient
     score's interior part (its Jacobian without shadow edges) and its bound, over the
     receivers the shot reaches."""
-    from hemirad.criteria import ShotContext, gradient_score, gradient_score_bound
-    from hemirad.display import luminance
-    from hemirad.formfactor import HemicubeFormFactors, element_form_factors
-    from hemirad.gradient import ShotView, form_factor_gradient
+    from hemirad.adaptive.criteria import ShotContext, gradient_score, gradient_score_bound
+    from hemirad.output.display import luminance
+    from hemirad.transport.formfactor import HemicubeFormFactors, element_form_factors
+    from hemirad.adaptive.gradient import ShotView, form_factor_gradient
 
     scene = hemirad.load_scene(name)
     mesh = build_mesh(scene)

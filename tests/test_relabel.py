@@ -2,11 +2,11 @@
 import torch
 
 import hemirad
-from hemirad.formfactor import HemicubeFormFactors, element_form_factors
-from hemirad.gradient import ShotView
-from hemirad.meshing import build_mesh
-from hemirad.refine import Refiner
-from hemirad.relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
+from hemirad.transport.formfactor import HemicubeFormFactors, element_form_factors
+from hemirad.adaptive.gradient import ShotView
+from hemirad.scene.meshing import build_mesh
+from hemirad.adaptive.refine import Refiner
+from hemirad.adaptive.relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
 
 from patches import refined_solve
 

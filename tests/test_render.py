@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 import torch
 
-from hemirad.mesh import Mesh
-from hemirad.render import depth_range, render_view
-from hemirad.scene import Camera
+from hemirad.geometry.mesh import Mesh
+from hemirad.output.render import depth_range, render_view
+from hemirad.scene.model import Camera
 
 RED = (1.0, 0.0, 0.0)
 GREEN = (0.0, 1.0, 0.0)

@@ -4,7 +4,7 @@ import sys
 import pytest
 import torch
 
-from hemirad.runtime import keep_freed_memory, torch_threads
+from hemirad.core.runtime import keep_freed_memory, torch_threads
 
 
 def test_torch_threads_sets_and_restores_the_pool():

@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from hemirad.solver import ProgressiveSolver, ambient_term
+from hemirad.transport.solver import ProgressiveSolver, ambient_term
 
 from patches import closed_box
 

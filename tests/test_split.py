@@ -3,9 +3,9 @@ import math
 import pytest
 import torch
 
-from hemirad.mesh import Mesh
-from hemirad.meshing import grid_quad
-from hemirad.split import angle_quality, largest_angles, split_triangles
+from hemirad.geometry.mesh import Mesh
+from hemirad.scene.meshing import grid_quad
+from hemirad.geometry.split import angle_quality, largest_angles, split_triangles
 
 
 def _triangle() -> Mesh:
@@ -201,7 +201,7 @@ def test_pattern2_keeps_shapes_pattern1_degrades():
 
 @pytest.mark.parametrize("pattern", ["pattern1", "pattern2"])
 def test_midpoint_index_carried_through_splits_is_the_one_built_afresh(pattern):
-    from hemirad.split import _midpoint_index
+    from hemirad.geometry.split import _midpoint_index
 
     g = torch.Generator().manual_seed(5)
     mesh = _jittered_grid()
@@ -218,7 +218,7 @@ def test_midpoint_index_carried_through_splits_is_the_one_built_afresh(pattern):
 
 @pytest.mark.parametrize("pattern", ["pattern1", "pattern2"])
 def test_geometry_handed_over_by_a_split_is_the_one_computed_afresh(pattern):
-    from hemirad.split import inherit
+    from hemirad.geometry.split import inherit
 
     g = torch.Generator().manual_seed(7)
     mesh = _jittered_grid(seed=1)
@@ -241,7 +241,7 @@ def test_geometry_handed_over_by_a_split_is_the_one_computed_afresh(pattern):
 def test_split_rounds_give_what_a_chain_of_splits_gives(pattern):
     """Rounds write into shared buffers and look midpoints up in an index of their own until
     ``result``: a later round must still reuse the midpoints an earlier one made."""
-    from hemirad.split import SplitRounds, _midpoint_index
+    from hemirad.geometry.split import SplitRounds, _midpoint_index
 
     g = torch.Generator().manual_seed(11)
     start = _jittered_grid(seed=2)
@@ -263,7 +263,7 @@ def test_split_rounds_give_what_a_chain_of_splits_gives(pattern):
 
 
 def test_a_leaf_beside_twice_split_neighbours_is_unbalanced():
-    from hemirad.split import unbalanced
+    from hemirad.geometry.split import unbalanced
 
     square = _square()  # triangles 0 (0 1 2) and 1 (0 2 3) share the diagonal 0-2
     once, _ = split_triangles(square, torch.tensor([True, False]), "pattern2")

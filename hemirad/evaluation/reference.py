@@ -36,12 +36,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import display
-from .errors import HemiradInputError
-from .mesh import Mesh
-from .meshing import build_mesh
-from .render import render_view
-from .scene import Camera, Scene
+from hemirad.output import display
+from hemirad.core.errors import HemiradInputError
+from hemirad.geometry.mesh import Mesh
+from hemirad.scene.meshing import build_mesh
+from hemirad.output.render import render_view
+from hemirad.scene.model import Camera, Scene
 
 #: Mitsuba variants tried in order: the JIT-compiled LLVM one is 10-30x faster, but needs
 #: an LLVM that Dr.Jit accepts (Debian: libllvm19); the scalar one works everywhere.

@@ -15,7 +15,7 @@ import re
 
 import torch
 
-from .errors import HemiradInputError
+from hemirad.core.errors import HemiradInputError
 
 DEVICE_NAMES = ("cpu", "cuda", "cuda:N", "auto")
 _PATTERN = re.compile(r"^(cpu|auto|cuda(:\d+)?)$")

@@ -10,11 +10,11 @@ import moderngl
 import numpy as np
 import torch
 
-from .display import conforming_triangles
-from .errors import HemiradInputError
-from .gl import GLContext
-from .mesh import Mesh
-from .render import _program, orthographic
+from hemirad.output.display import conforming_triangles
+from hemirad.core.errors import HemiradInputError
+from hemirad.transport.gl import GLContext
+from hemirad.geometry.mesh import Mesh
+from hemirad.output.render import _program, orthographic
 
 # Below this length of world +y projected onto the surface, the surface faces up or down
 # and +y no longer gives a stable image "up"; -z is used instead.

@@ -14,10 +14,10 @@ import moderngl
 import numpy as np
 import torch
 
-from .errors import HemiradInputError
-from .gl import GLContext
-from .mesh import Mesh
-from .scene import Camera
+from hemirad.core.errors import HemiradInputError
+from hemirad.transport.gl import GLContext
+from hemirad.geometry.mesh import Mesh
+from hemirad.scene.model import Camera
 
 _VERTEX_SHADER = """
 #version 330

@@ -11,7 +11,7 @@ from functools import cached_property
 
 import torch
 
-from .device import as_tensor
+from hemirad.core.device import as_tensor
 
 
 @dataclass

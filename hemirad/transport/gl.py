@@ -7,7 +7,7 @@ import threading
 
 import moderngl
 
-from .errors import HemiradInputError
+from hemirad.core.errors import HemiradInputError
 
 
 class GLContext:

@@ -3,13 +3,13 @@ from __future__ import annotations
 
 import torch
 
-from .criteria import CRITERIA, ShotContext
-from .display import luminance
-from .fastops import flatnonzero
-from .gradient import ShotView
-from .mesh import Mesh
-from .scene import RefineOptions
-from .split import SplitRounds
+from hemirad.adaptive.criteria import CRITERIA, ShotContext
+from hemirad.output.display import luminance
+from hemirad.core.fastops import flatnonzero
+from hemirad.adaptive.gradient import ShotView
+from hemirad.geometry.mesh import Mesh
+from hemirad.scene.model import RefineOptions
+from hemirad.geometry.split import SplitRounds
 
 CHILDREN = {"pattern1": 3, "pattern2": 4}
 

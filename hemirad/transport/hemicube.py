@@ -24,7 +24,7 @@ import moderngl
 import numpy as np
 import torch
 
-from .gl import GLContext
+from hemirad.transport.gl import GLContext
 
 BACK_FACE_BIT = 1 << 31
 

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import torch
 
-from .fastops import flatnonzero, marked_positions
-from .mesh import Mesh
-from .split import inherit
+from hemirad.core.fastops import flatnonzero, marked_positions
+from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.split import inherit
 
 
 @dataclass

@@ -20,8 +20,8 @@ import math
 
 import torch
 
-from .fastops import flatnonzero, rows_touching
-from .mesh import Mesh
+from hemirad.core.fastops import flatnonzero, rows_touching
+from hemirad.geometry.mesh import Mesh
 
 PATTERNS = ("pattern1", "pattern2")
 

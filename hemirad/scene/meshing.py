@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import HemiradInputError, HemiradWarning
-from .mesh import Mesh
-from .scene import Box, MeshFile, Quad, Room, Scene
+from hemirad.core.errors import HemiradInputError, HemiradWarning
+from hemirad.geometry.mesh import Mesh
+from hemirad.scene.model import Box, MeshFile, Quad, Room, Scene
 
 # ceil(length / size) with a little slack, so 0.9 / 0.3 = 3.0000000000000004 gives 3 cells.
 _CELL_SLACK = 1e-9

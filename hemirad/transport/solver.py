@@ -12,17 +12,17 @@ from typing import Callable
 
 import torch
 
-from .criteria import ShotContext
-from .display import luminance
-from .fastops import row_sums
-from .formfactor import HemicubeFormFactors, element_form_factors
-from .gl import GLContext
-from .gradient import ShotView, form_factor_gradient
-from .mesh import Mesh
-from .refine import Refiner
-from .relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
-from .runtime import deterministic, keep_freed_memory, torch_threads
-from .split import GrowingRows, inherit
+from hemirad.adaptive.criteria import ShotContext
+from hemirad.output.display import luminance
+from hemirad.core.fastops import row_sums
+from hemirad.transport.formfactor import HemicubeFormFactors, element_form_factors
+from hemirad.transport.gl import GLContext
+from hemirad.adaptive.gradient import ShotView, form_factor_gradient
+from hemirad.geometry.mesh import Mesh
+from hemirad.adaptive.refine import Refiner
+from hemirad.adaptive.relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
+from hemirad.core.runtime import deterministic, keep_freed_memory, torch_threads
+from hemirad.geometry.split import GrowingRows, inherit
 
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,

@@ -15,8 +15,8 @@ import torch
 import trimesh
 from PIL import Image
 
-from .errors import HemiradInputError
-from .mesh import Mesh
+from hemirad.core.errors import HemiradInputError
+from hemirad.geometry.mesh import Mesh
 
 # Extra per-vertex PLY properties carrying the linear radiosity next to the display colour.
 RADIOSITY_PROPERTIES = ("radiosity_r", "radiosity_g", "radiosity_b")

@@ -10,7 +10,7 @@ import math
 
 import torch
 
-from .device import as_tensor
+from hemirad.core.device import as_tensor
 
 
 def _t(x) -> torch.Tensor:

@@ -13,8 +13,8 @@ from typing import Callable
 
 import torch
 
-from .analytic import point_to_triangles
-from .mesh import Mesh
+from hemirad.geometry.analytic import point_to_triangles
+from hemirad.geometry.mesh import Mesh
 
 
 @dataclass

@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .analytic import point_to_triangles
-from .formfactor import decode_items, delta_form_factors
-from .hemicube import Hemicube, tangent_frame
-from .mesh import Mesh
+from hemirad.geometry.analytic import point_to_triangles
+from hemirad.transport.formfactor import decode_items, delta_form_factors
+from hemirad.transport.hemicube import Hemicube, tangent_frame
+from hemirad.geometry.mesh import Mesh
 
 
 def visible_light_fraction(mesh: Mesh, emitting: torch.Tensor, points: torch.Tensor, normal: torch.Tensor,

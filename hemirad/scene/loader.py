@@ -1,4 +1,4 @@
-"""Read a YAML scene file into a :class:`hemirad.scene.Scene`, checking every key.
+"""Read a YAML scene file into a :class:`hemirad.scene.model.Scene`, checking every key.
 
 Each mistake raises :class:`SceneError` naming the file, the key path inside it
 (``objects[3].material``, ``camera.fov``), what was expected and what was found, so the
@@ -33,16 +33,16 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .device import DEVICE_NAMES, is_device_name
-from .errors import SceneError
-from .meshing import clean_triangles
-from .scene import (Box, Camera, FaceOverride, Material, MeshFile, Quad, RefineOptions, Room, Scene, SceneObject,
+from hemirad.core.device import DEVICE_NAMES, is_device_name
+from hemirad.core.errors import SceneError
+from hemirad.scene.meshing import clean_triangles
+from hemirad.scene.model import (Box, Camera, FaceOverride, Material, MeshFile, Quad, RefineOptions, Room, Scene, SceneObject,
                     SolverOptions)
 
 #: Refuse scenes whose estimated initial triangle count exceeds this.
 MAX_TRIANGLES = 5_000_000
 
-SCENES_DIR = Path(__file__).resolve().parent / "scenes"
+SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
 _TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver", "refine")
 _MATERIAL_KEYS = ("reflectance", "emission")
@@ -615,7 +615,7 @@ class _Reader:
         return v
 
     def read_refine(self, v) -> RefineOptions:
-        from .criteria import CRITERIA  # the registry of criterion names lives with the criteria
+        from hemirad.adaptive.criteria import CRITERIA  # the registry of criterion names lives with the criteria
 
         m = self.mapping(v, "refine", "a mapping of refinement options")
         self.keys(m, "refine", _REFINE_KEYS)

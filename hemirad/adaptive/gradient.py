@@ -28,10 +28,10 @@ from functools import cached_property
 import torch
 from torch.func import jacfwd
 
-from .device import cached_per_device
-from .fastops import flatnonzero, marked_positions, on_host, row_sums, take_or_none
-from .formfactor import element_form_factors, hemicube_directions
-from .hemicube import FACES, face_viewports
+from hemirad.core.device import cached_per_device
+from hemirad.core.fastops import flatnonzero, marked_positions, on_host, row_sums, take_or_none
+from hemirad.transport.formfactor import element_form_factors, hemicube_directions
+from hemirad.transport.hemicube import FACES, face_viewports
 
 # PyTorch's own forward-mode set-up scripts its decompositions on first use and warns that
 # torch.jit.script is deprecated (a FutureWarning in torch 2.15, a DeprecationWarning in

@@ -11,10 +11,10 @@ import time
 import numpy as np
 import torch
 
-from .device import cached_per_device
-from .fastops import on_host
-from .hemicube import BACK_FACE_BIT, FACES, Hemicube, face_viewports, tangent_frame
-from .mesh import Mesh
+from hemirad.core.device import cached_per_device
+from hemirad.core.fastops import on_host
+from hemirad.transport.hemicube import BACK_FACE_BIT, FACES, Hemicube, face_viewports, tangent_frame
+from hemirad.geometry.mesh import Mesh
 
 
 @cached_per_device

@@ -18,9 +18,9 @@ import math
 import numpy as np
 import torch
 
-from .device import as_tensor
-from .mesh import Mesh
-from .split import midpoint_lookup
+from hemirad.core.device import as_tensor
+from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.split import midpoint_lookup
 
 # Rec. 709 / sRGB primaries: relative luminance of linear RGB.
 REC709_LUMINANCE = (0.2126, 0.7152, 0.0722)
