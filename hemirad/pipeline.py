@@ -124,6 +124,25 @@ class Result:
         return Path(path)
 
 
+def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device | str | None = None,
+                cull: bool = True, relabel: bool = True, bound: bool = True) -> ProgressiveSolver:
+    """The progressive solver for ``scene``: its initial ``mesh`` (``build_mesh(scene)`` when
+    None) with the materials' reflectance and emission, the hemicube resolution of
+    ``scene.solver``, and a ``Refiner`` when ``scene.refine`` asks for refinement.
+
+    Args:
+        device: where to solve; default ``scene.solver.device`` (``select_device``).
+        cull, relabel, bound: the equivalent fast paths (``ProgressiveSolver``, ``Refiner``),
+            switchable to show that they change no number.
+    """
+    mesh = build_mesh(scene) if mesh is None else mesh
+    reflectance = scene.reflectance_table()[mesh.material]
+    emission = scene.emission_table()[mesh.material]
+    refiner = Refiner(scene.refine, emission, relabel=relabel, bound=bound) if scene.refine.enabled else None
+    device = select_device(scene.solver.device) if device is None else device
+    return ProgressiveSolver(mesh, reflectance, emission, scene.solver.resolution, refiner, cull=cull, device=device)
+
+
 def _restore(solver: ProgressiveSolver, state: dict, run: dict, path, initial_elements: int) -> dict:
     """Load a checkpoint's solver state; returns the seconds the earlier runs spent."""
     try:
@@ -199,12 +218,10 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     start = time.perf_counter()
     mesh = build_mesh(scene)
     meshed = time.perf_counter()
-    reflectance = scene.reflectance_table()[mesh.material]
-    emission = scene.emission_table()[mesh.material]
-    refiner = Refiner(scene.refine, emission) if scene.refine.enabled else None
     # Built from the initial mesh even when resuming: its bounds set the hemicube's near and
     # far planes, which must be those of the run being continued.
-    solver = ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner, device=device)
+    solver = make_solver(scene, mesh, device=device)
+    refiner = solver.refiner
     before = {"mesh": 0.0, "solve": 0.0}  # seconds spent by the runs this one continues
     resumed_from = None
     try:

@@ -41,9 +41,7 @@ from hemirad.evaluation import metrics
 from hemirad.evaluation import reference
 from hemirad.transport.gl import GLContext
 from hemirad.scene.meshing import build_mesh
-from hemirad.pipeline import Result
-from hemirad.adaptive.refine import Refiner
-from hemirad.transport.solver import ProgressiveSolver
+from hemirad.pipeline import Result, make_solver
 
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCES = ROOT / "tests" / "references"
@@ -133,11 +131,10 @@ def solve(scene, settings: SolverSettings) -> tuple[Result, float]:
     """Refine during the first ``refine_shots`` shots, then shoot on the fixed mesh until the
     stopping rule. Returns the result and the wall-clock seconds."""
     start = time.perf_counter()
+    scene.solver.resolution = settings.resolution
     mesh = build_mesh(scene)
-    reflectance = scene.reflectance_table()[mesh.material]
-    emission = scene.emission_table()[mesh.material]
-    refiner = Refiner(scene.refine, emission) if scene.refine.enabled else None
-    solver = ProgressiveSolver(mesh, reflectance, emission, settings.resolution, refiner)
+    solver = make_solver(scene, mesh)
+    refiner = solver.refiner
     try:
         state = solver.run(settings.refine_shots, settings.unshot_fraction)
         solver.refiner = None  # the mesh is final; the rest is plain shooting

@@ -36,8 +36,8 @@ from torch.utils._python_dispatch import TorchDispatchMode
 import hemirad
 from hemirad.core.device import select_device
 from hemirad.transport.gl import GLContext
+from hemirad.pipeline import make_solver
 from hemirad.scene.meshing import build_mesh
-from hemirad.transport.solver import ProgressiveSolver
 
 ROOT = Path(__file__).resolve().parent.parent
 PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
@@ -159,10 +159,9 @@ def operator_counts(threshold: float, shots: int, resolution: int, device: torch
 
 
 def per_shot(scene, shots: int, resolution: int, device: torch.device) -> dict:
-    mesh = build_mesh(scene)
-    reflectance = scene.reflectance_table()[mesh.material]
-    emission = scene.emission_table()[mesh.material]
-    solver = ProgressiveSolver(mesh, reflectance, emission, resolution, device=device)
+    scene.solver.resolution = resolution
+    solver = make_solver(scene, device=device)
+    mesh = solver.mesh
     try:
         solver.run(1, unshot_fraction=0.0)  # warm-up: shader compilation and first allocations
         warm = solver.timings()

@@ -5,9 +5,8 @@ import torch
 
 import hemirad
 from hemirad.geometry.mesh import Mesh
-from hemirad.scene.meshing import build_mesh, grid_quad
-from hemirad.adaptive.refine import Refiner
-from hemirad.transport.solver import ProgressiveSolver
+from hemirad.pipeline import make_solver
+from hemirad.scene.meshing import grid_quad
 
 
 def quad(origin, u, v):
@@ -37,13 +36,12 @@ def closed_box(size=1.0, element_size=1.0):
 
 def refined_solve(scene_name: str, shots: int, resolution: int = 64, **solver_options):
     """A pattern-2 refining solve of a bundled scene for ``shots`` shots; returns the
-    finished (closed) ProgressiveSolver, with ``solver_options`` (cull, relabel) passed on."""
+    finished (closed) ProgressiveSolver, with ``solver_options`` (cull, relabel, bound)
+    passed on to ``make_solver``."""
     scene = hemirad.load_scene(scene_name)
     scene.refine.pattern = "pattern2"
-    mesh = build_mesh(scene)
-    emission = scene.emission_table()[mesh.material]
-    solver = ProgressiveSolver(mesh, scene.reflectance_table()[mesh.material], emission, resolution,
-                               Refiner(scene.refine, emission), **solver_options)
+    scene.solver.resolution = resolution
+    solver = make_solver(scene, **solver_options)
     try:
         solver.run(shots, 0.0)
     finally:

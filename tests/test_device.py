@@ -96,11 +96,11 @@ _CUDA_AGAINST_CPU = textwrap.dedent("""
     GLContext.get(gpu=True)
     from test_device import refining_solve
     import hemirad
-    from hemirad.transport.formfactor import HemicubeFormFactors
+    from hemirad.transport.renderer import HemicubeRenderer
     from hemirad.scene.meshing import build_mesh
 
     mesh = build_mesh(hemirad.load_scene("cornell_box"))
-    cpu, gpu = HemicubeFormFactors(mesh, 128), HemicubeFormFactors(mesh.to("cuda"), 128, device="cuda")
+    cpu, gpu = HemicubeRenderer(mesh, 128), HemicubeRenderer(mesh.to("cuda"), 128, device="cuda")
     for shooter in (0, mesh.num_elements // 2, mesh.num_elements - 1):
         a, b = cpu.from_element(shooter), gpu.from_element(shooter)
         assert b.device.type == "cuda" and torch.allclose(a, b.cpu(), rtol=1e-12, atol=1e-15), shooter

@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from hemirad.output.display import auto_exposure, luminance, to_srgb8, vertex_values
+from hemirad.core.colour import luminance
+from hemirad.output.display import auto_exposure, to_srgb8, vertex_values
 from hemirad.geometry.mesh import Mesh
 
 

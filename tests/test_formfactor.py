@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from hemirad.geometry.analytic import parallel_rectangles, perpendicular_rectangles, point_to_polygon
-from hemirad.transport.formfactor import HemicubeFormFactors, delta_form_factors, raw_delta_form_factors
+from hemirad.transport.formfactor import delta_form_factors, raw_delta_form_factors
+from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.geometry.mesh import Mesh
 
 from patches import closed_box, quad, quads_mesh
@@ -39,7 +40,7 @@ def test_raw_delta_form_factors_converge_to_one_like_the_midpoint_rule():
 
 def test_closed_box_form_factors_sum_to_one():
     mesh = closed_box(element_size=0.25)
-    ff = HemicubeFormFactors(mesh, 64)
+    ff = HemicubeRenderer(mesh, 64)
     try:
         for shooter in (0, 17, mesh.num_elements - 1):
             F = ff.from_element(shooter)
@@ -51,7 +52,7 @@ def test_closed_box_form_factors_sum_to_one():
 
 def area_to_area(mesh, source_count, resolution):
     """F from the first ``source_count`` elements (one patch) to the rest, area-weighted."""
-    ff = HemicubeFormFactors(mesh, resolution)
+    ff = HemicubeRenderer(mesh, resolution)
     try:
         areas = mesh.areas
         rows = torch.stack([ff.from_element(i)[source_count:].sum() for i in range(source_count)])
@@ -98,7 +99,7 @@ def test_hemicube_converges_to_lambert_as_resolution_grows():
             source = np.array([p + [h, 0, 0], p + [-h / 2, h, 0], p + [-h / 2, -h, 0]])
             vertices = np.concatenate([source, rectangle[::-1]])  # the rectangle faces down
             mesh = Mesh(vertices, [[0, 1, 2], [3, 4, 5], [3, 5, 6]], [0, 1, 1], [0, 0, 0])
-            ff = HemicubeFormFactors(mesh, R)
+            ff = HemicubeRenderer(mesh, R)
             F = float(ff.from_element(0)[1:].sum())
             ff.close()
             reference = float(point_to_polygon(mesh.centroids[0], torch.tensor(Z), torch.tensor(rectangle)))
@@ -115,7 +116,7 @@ def test_reciprocity_between_two_patches():
     mesh = quads_mesh([a, b], [0.1, 0.1])
     n_a = int((mesh.surface == 0).sum())
     area_a, area_b = float(mesh.areas[:n_a].sum()), float(mesh.areas[n_a:].sum())
-    ff = HemicubeFormFactors(mesh, 128)
+    ff = HemicubeRenderer(mesh, 128)
     try:
         F = torch.stack([ff.from_element(i) for i in range(mesh.num_elements)])
     finally:

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from hemirad.geometry.analytic import point_to_polygon
-from hemirad.transport.formfactor import HemicubeFormFactors
-from hemirad.adaptive.gradient import ReceiverPatches, ShotView, form_factor_jacobian, interior_form_factors, occlusion_pairs
+from hemirad.transport.renderer import HemicubeRenderer
+from hemirad.adaptive.gradient import ReceiverPatches, form_factor_jacobian, interior_form_factors, occlusion_pairs
 from hemirad.geometry.mesh import Mesh
 
 Z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
@@ -35,12 +35,11 @@ def shot(point, polygons, resolution=256):
         ranges.append(slice(len(triangles), len(triangles) + 2))
         triangles += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
     mesh = Mesh(np.concatenate(vertices), triangles, range(len(triangles)), [0] * len(triangles))
-    ff = HemicubeFormFactors(mesh, resolution)
+    ff = HemicubeRenderer(mesh, resolution)
     try:
-        element, front, eye, frame = ff.render(0)
+        view = ff.render(0)
     finally:
         ff.close()
-    view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
     return view, ranges
 
 
@@ -148,13 +147,12 @@ def test_plane_ids_change_no_gradient_and_mark_planar_surfaces():
     fresh = Mesh(split.vertices, split.triangles, split.surface, split.material)
     assert torch.equal(fresh.plane_ids, split.plane_ids)  # and what computing them afresh gives
 
-    ff = HemicubeFormFactors(split, 64)
+    ff = HemicubeRenderer(split, 64)
     try:
         lamp = int(torch.nonzero(scene.emission_table()[split.material].sum(1) > 0)[0])
-        element, front, eye, frame = ff.render(lamp)
+        view = ff.render(lamp)
     finally:
         ff.close()
-    view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
     F, J = form_factor_jacobian(view)
     F_ids, J_ids = form_factor_jacobian(view, plane_ids=split.plane_ids)
     assert torch.equal(F, F_ids) and torch.equal(J, J_ids)

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import hemirad
-from hemirad.transport.formfactor import HemicubeFormFactors
+from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.hemicube import FACES, face_visibility
 from hemirad.scene.meshing import build_mesh
 from hemirad.geometry.split import split_triangles
@@ -25,15 +25,15 @@ def refined_mesh(name):
 @pytest.mark.parametrize("name", ["cornell_box", "floating", "office"])
 def test_culled_render_gives_the_unculled_atlas_bit_for_bit(name):
     mesh = refined_mesh(name)
-    culled = HemicubeFormFactors(mesh, 64)
-    full = HemicubeFormFactors(mesh, 64, cull=False)
+    culled = HemicubeRenderer(mesh, 64)
+    full = HemicubeRenderer(mesh, 64, cull=False)
     try:
         shooters = torch.linspace(0, mesh.num_elements - 1, 25).long().tolist()
         for shooter in shooters:
-            element, front, _, _ = culled.render(shooter)
+            seen = culled.render(shooter)
             drawn = culled.hemicube.drawn_triangles
-            element_full, front_full, _, _ = full.render(shooter)
-            assert torch.equal(element, element_full) and torch.equal(front, front_full), shooter
+            seen_full = full.render(shooter)
+            assert torch.equal(seen.element, seen_full.element) and torch.equal(seen.front, seen_full.front), shooter
             assert torch.equal(culled.from_element(shooter), full.from_element(shooter))
             # and the point of it: far fewer triangles drawn than five times all of them
             assert full.hemicube.drawn_triangles == 5 * mesh.num_elements

@@ -5,7 +5,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 import hemirad
-from hemirad.output import display
+from hemirad.core.colour import luminance
 from hemirad.output.meshview import pick_surface, surface_view
 from hemirad.scene.meshing import build_mesh
 from hemirad.adaptive.refine import Refiner
@@ -69,7 +69,7 @@ def floor_luminance(scene, size=96):
     result = hemirad.solve(scene)
     image = surface_view(result.mesh, result.vertex_radiosity(), pick_surface(result.mesh, "floor"),
                          size=size, edges=False)
-    return display.luminance(torch.from_numpy(image)).numpy(), result.mesh.num_elements
+    return luminance(torch.from_numpy(image)).numpy(), result.mesh.num_elements
 
 
 def test_refined_result_depends_little_on_the_initial_mesh_size():
@@ -142,24 +142,22 @@ def interior_scores_and_bounds(name: str, resolution: int, shooters) -> list[tup
     score's interior part (its Jacobian without shadow edges) and its bound, over the
     receivers the shot reaches."""
     from hemirad.adaptive.criteria import ShotContext, gradient_score, gradient_score_bound
-    from hemirad.output.display import luminance
-    from hemirad.transport.formfactor import HemicubeFormFactors, element_form_factors
-    from hemirad.adaptive.gradient import ShotView, form_factor_gradient
+    from hemirad.adaptive.gradient import form_factor_gradient
+    from hemirad.transport.renderer import HemicubeRenderer
 
     scene = hemirad.load_scene(name)
     mesh = build_mesh(scene)
     reflectance, emission = scene.reflectance_table()[mesh.material], scene.emission_table()[mesh.material]
-    ff = HemicubeFormFactors(mesh, resolution)
+    ff = HemicubeRenderer(mesh, resolution)
     out = []
     try:
         for shooter in shooters:
             shooter = shooter(emission) if callable(shooter) else int(shooter)
-            element, front, eye, frame = ff.render(shooter)
-            view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
-            F = element_form_factors(view.element, view.front, view.weight, mesh.num_elements)
+            view = ff.render(shooter)
+            F = view.form_factors
             J = form_factor_gradient(view, shadow_edges=False)  # the interior term
             power = torch.tensor([1.0, 1.0, 1.0], dtype=torch.float64)
-            ctx = ShotContext(mesh, shooter, view.eye, ff.normals[shooter], F,
+            ctx = ShotContext(mesh, shooter, view.eye, mesh.normals[shooter], F,
                               luminance(reflectance * power) / mesh.areas, J)
             rows = torch.nonzero(F > 0).reshape(-1)
             rows = rows[rows != shooter]

@@ -2,8 +2,8 @@
 import torch
 
 import hemirad
-from hemirad.transport.formfactor import HemicubeFormFactors, element_form_factors
-from hemirad.adaptive.gradient import ShotView
+from hemirad.transport.formfactor import element_form_factors
+from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.scene.meshing import build_mesh
 from hemirad.adaptive.refine import Refiner
 from hemirad.adaptive.relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
@@ -25,11 +25,10 @@ def test_relabelled_atlas_is_the_new_render_but_for_a_few_edge_pixels():
     mesh = build_mesh(scene)
     emission = scene.emission_table()[mesh.material]
     lamp = int(torch.nonzero(emission.sum(1) > 0)[0])
-    ff = HemicubeFormFactors(mesh, 128)
+    ff = HemicubeRenderer(mesh, 128)
     try:
-        element, front, eye, frame = ff.render(lamp)
-        view = ShotView.from_render(element, front, ff.weights, eye, frame, ff.normals, ff.centroids)
-        seen = torch.bincount(element[front].reshape(-1), minlength=mesh.num_elements) > 0
+        view = ff.render(lamp)
+        seen = torch.bincount(view.element[view.front], minlength=mesh.num_elements) > 0
         selected = seen & (torch.arange(mesh.num_elements) % 3 == 0)  # a third of what the lamp sees
         selected[lamp] = False
         new_mesh, parent = Refiner(scene.refine, emission).split(mesh, selected)  # with 2:1 grading
@@ -39,15 +38,14 @@ def test_relabelled_atlas_is_the_new_render_but_for_a_few_edge_pixels():
         assert len(pixels) > 10000
         relabelled = relabel_atlas(view.element, view.hits(pixels), pixels, descent, new_mesh)
         # the form factors carried over are those of the relabelled atlas, bit for bit
-        weight = ff.weights.reshape(-1)
-        F_old = element_form_factors(view.element, view.front, weight, mesh.num_elements)
-        F_new = relabel_form_factors(F_old, descent, relabelled, view.front, weight, pixels)
+        weight = view.weight
+        assert torch.equal(view.form_factors, element_form_factors(view.element, view.front, weight, mesh.num_elements))
+        F_new = relabel_form_factors(view.form_factors, descent, relabelled, view.front, weight, pixels)
         assert torch.equal(F_new, element_form_factors(relabelled, view.front, weight, new_mesh.num_elements))
         ff.set_geometry(new_mesh)
-        rendered, _, _, _ = ff.render(int(torch.nonzero(parent == lamp)[0]))
+        rendered = ff.render(int(torch.nonzero(parent == lamp)[0])).element
     finally:
         ff.close()
-    rendered = rendered.reshape(-1)
     differ = relabelled != rendered
     assert int(differ.sum()) <= 1e-3 * len(pixels), int(differ.sum())
     # where they differ, both are descendants of the same old element (a tie on a new edge)

@@ -22,16 +22,15 @@ Jacobian from one backward pass, which torch runs an order of magnitude faster.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, fields, replace
-from functools import cached_property
+from dataclasses import dataclass
 
 import torch
 from torch.func import jacfwd
 
 from hemirad.core.device import cached_per_device
-from hemirad.core.fastops import flatnonzero, marked_positions, on_host, row_sums, take_or_none
-from hemirad.transport.formfactor import element_form_factors, hemicube_directions
-from hemirad.transport.hemicube import FACES, face_viewports
+from hemirad.core.fastops import flatnonzero, on_host, row_sums, take_or_none
+from hemirad.transport.hemicube import FACES
+from hemirad.transport.view import HemicubeView, pixel_directions, pixel_faces
 
 # PyTorch's own forward-mode set-up scripts its decompositions on first use and warns that
 # torch.jit.script is deprecated (a FutureWarning in torch 2.15, a DeprecationWarning in
@@ -39,30 +38,6 @@ from hemirad.transport.hemicube import FACES, face_viewports
 for _category in (FutureWarning, DeprecationWarning):
     warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*deprecated", category=_category,
                             module=r"torch\.jit")
-
-
-@cached_per_device
-def pixel_faces(resolution: int) -> torch.Tensor:
-    """(3R,) int64: which hemicube face (index into ``FACES``) each atlas row belongs to."""
-    rows = torch.empty(3 * resolution, dtype=torch.int64)
-    for face, (_, y0, _, height) in enumerate(face_viewports(resolution)):
-        rows[y0:y0 + height] = face
-    return rows
-
-
-@cached_per_device
-def pixel_directions(resolution: int) -> torch.Tensor:
-    """(3, P) ``hemicube_directions`` flattened, components first: per-pixel arithmetic
-    then runs over contiguous rows. Do not modify (cached)."""
-    return hemicube_directions(resolution).reshape(-1, 3).T.contiguous()
-
-
-@cached_per_device
-def pixel_sines(resolution: int) -> torch.Tensor:
-    """(P,) the sine of each pixel ray's angle from the hemicube's axis (the local z). Do not
-    modify (cached)."""
-    d = pixel_directions(resolution)
-    return d[:2].norm(dim=0) / d.norm(dim=0)
 
 
 @cached_per_device
@@ -141,114 +116,6 @@ def pairs_touching(pixels: torch.Tensor, resolution: int) -> torch.Tensor:
 
 
 @dataclass
-class ShotView:
-    """What one hemicube render saw, as detached tensors (P = 3R^2 pixels, flattened).
-
-    Attributes:
-        eye: (3,) c0, where the hemicube was rendered.
-        frame: (3, 3) rows t, b, n of its local frame; n is the shooter's normal.
-        element: (P,) element seen by each pixel, -1 for none.
-        front: (P,) bool, the pixel sees an element's front.
-        weight: (P,) delta form factor of each pixel.
-        normals, points: (T, 3) every element's unit normal and a point on its plane.
-        resolution: R.
-    """
-
-    eye: torch.Tensor
-    frame: torch.Tensor
-    element: torch.Tensor
-    front: torch.Tensor
-    weight: torch.Tensor
-    normals: torch.Tensor
-    points: torch.Tensor
-    resolution: int
-
-    @staticmethod
-    def from_render(element: torch.Tensor, front: torch.Tensor, weight: torch.Tensor, eye, frame,
-                    normals: torch.Tensor, points: torch.Tensor) -> "ShotView":
-        """Wrap an item atlas with what reconstructs its hit points.
-
-        Args:
-            element, front: (3R, R) or flattened (P,), from ``formfactor.decode_items`` (or
-                relabelled); weight: (3R, R) ``delta_form_factors``.
-            eye: (3,) and frame: (3, 3) as given to ``Hemicube.render``.
-            normals, points: (T, 3) every element's unit normal and a point on its plane.
-        """
-        eye = torch.as_tensor(eye, dtype=torch.float64, device=element.device)
-        return ShotView(eye, torch.as_tensor(frame, dtype=torch.float64, device=element.device), element.reshape(-1),
-                        front.reshape(-1), weight.reshape(-1), normals, points, weight.shape[-1])
-
-    def copy(self) -> "ShotView":
-        """The same view over copies of its tensors (made outside ``torch.inference_mode``,
-        they are ones autograd may use)."""
-        return replace(self, **{f.name: getattr(self, f.name).clone() for f in fields(self)
-                                if isinstance(getattr(self, f.name), torch.Tensor)})
-
-    @cached_property
-    def distance(self) -> torch.Tensor:
-        """(T,) n_j . (p_j - eye): each element's plane seen from the eye."""
-        return row_sums((self.points - self.eye) * self.normals)
-
-    def distance_of(self, k: torch.Tensor) -> torch.Tensor:
-        """(N,) ``distance`` of the (N,) elements ``k`` only (the same numbers)."""
-        return row_sums((self.points.index_select(0, k) - self.eye) * self.normals.index_select(0, k))
-
-    def normals_of(self, k: torch.Tensor) -> torch.Tensor:
-        """(3, N) the normals of the (N,) elements ``k``, components first (a transposed
-        view: the arithmetic on it is faster than copying it into that layout)."""
-        return self.normals.index_select(0, k).T
-
-    def hits(self, pixels: torch.Tensor) -> torch.Tensor:
-        """(3, N) the world points the given pixels (N,) see, components first.
-
-        Exact: the pixel's ray meets the plane of the element it sees. A pass that needs few
-        pixels (a later pass of a refining shot) computes only those; one that needs many
-        computes every pixel's once, without the gathers, and indexes that.
-        """
-        if len(pixels) > len(self.element) // 3:  # measured: the gathers cost about 3x per pixel
-            return self._all_hits.index_select(1, pixels)
-        directions = self.frame.T @ pixel_directions(self.resolution, self.eye.device).index_select(1, pixels)
-        k = self.element.index_select(0, pixels).clamp(min=0)
-        return self._hits(k, self.distance_of(k), directions)
-
-    @cached_property
-    def _all_hits(self) -> torch.Tensor:
-        k = self.element.clamp(min=0)
-        directions = self.frame.T @ pixel_directions(self.resolution, self.eye.device)
-        return self._hits(k, self.distance.index_select(0, k), directions)
-
-    def _hits(self, k: torch.Tensor, distance: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
-        """(3, N) where the rays (3, N) ``directions`` from the eye meet the planes of the
-        (N,) elements ``k``, whose ``distance`` (N,) is given."""
-        return self.eye[:, None] + (distance / (directions * self.normals_of(k)).sum(0)) * directions
-
-    def sine_sums(self, pixels: torch.Tensor | None = None) -> torch.Tensor:
-        """(T,) per element, the sum over its front-facing pixels of w_q sin(theta_q), theta_q
-        the angle between the pixel's ray and the shooter's normal (``gradient_score_bound``);
-        over ``pixels`` (N,) only when given (elements none of them see get 0 or a partial sum)."""
-        sine = pixel_sines(self.resolution, self.eye.device)
-        element, front, weight = self.element, self.front, self.weight
-        if pixels is not None:
-            element, front, weight, sine = (x.index_select(0, pixels) for x in (element, front, weight, sine))
-        return element_form_factors(element, front, weight * sine, len(self.normals))
-
-    def wanted_pixels(self, wanted: torch.Tensor | None, pixels: torch.Tensor | None = None,
-                      front: bool = False) -> torch.Tensor:
-        """(N,) the pixels that see an element marked in ``wanted`` (every element when None),
-        front-facing only with ``front``; only ``pixels`` are examined when given (the rest
-        are known to see none of the wanted elements)."""
-        element = self.element if pixels is None else self.element.index_select(0, pixels)
-        if wanted is None:
-            found = flatnonzero(element >= 0)
-        else:
-            found = marked_positions(element, wanted)
-        if front:  # a front-facing pixel sees an element: a subset of the found ones
-            seen_front = self.front if pixels is None else self.front.index_select(0, pixels)
-            found = found.index_select(0, flatnonzero(seen_front.index_select(0, found)))
-        return found if pixels is None else pixels.index_select(0, found)
-
-
-@dataclass
 class ReceiverPatches:
     """The receiver patch behind every front-facing pixel of a render (Q pixels), frozen.
 
@@ -279,7 +146,7 @@ class ReceiverPatches:
     scale: torch.Tensor
 
     @staticmethod
-    def from_view(view: ShotView, wanted: torch.Tensor | None = None,
+    def from_view(view: HemicubeView, wanted: torch.Tensor | None = None,
                   pixels: torch.Tensor | None = None) -> "ReceiverPatches":
         """The patches of the front-facing pixels, or only of those that see an element marked
         in ``wanted`` (T,) bool, looked for among ``pixels`` (N,) when given."""
@@ -356,7 +223,7 @@ class OcclusionPairs:
                               empty(0, dtype=torch.int64), empty(0))
 
 
-def occlusion_pairs(view: ShotView, wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None,
+def occlusion_pairs(view: HemicubeView, wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None,
                     pixels: torch.Tensor | None = None) -> OcclusionPairs:
     """Find the 4-neighbour pixel pairs within one face that straddle an occluding edge.
 
@@ -444,7 +311,7 @@ def face_axes(frame: torch.Tensor) -> torch.Tensor:
     return local @ frame
 
 
-def shadow_edge_terms(c: torch.Tensor, view: ShotView, pairs: OcclusionPairs) -> torch.Tensor:
+def shadow_edge_terms(c: torch.Tensor, view: HemicubeView, pairs: OcclusionPairs) -> torch.Tensor:
     """The coverage each occlusion pair's farther element gains or loses as the occluding
     edge slides with the eye: zero at c = eye; its derivative is the visibility part of dF_sj/dc.
 
@@ -491,7 +358,7 @@ def eye_gradients(terms, eye: torch.Tensor, count: int) -> torch.Tensor:
     return gradient.T
 
 
-def form_factor_gradient(view: ShotView, interior: bool = True, shadow_edges: bool = True,
+def form_factor_gradient(view: HemicubeView, interior: bool = True, shadow_edges: bool = True,
                          wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None,
                          pixels: torch.Tensor | None = None,
                          interior_wanted: torch.Tensor | None = None, mode: str = "reverse") -> torch.Tensor:
@@ -552,10 +419,9 @@ def form_factor_gradient(view: ShotView, interior: bool = True, shadow_edges: bo
     return J
 
 
-def form_factor_jacobian(view: ShotView, interior: bool = True, shadow_edges: bool = True,
+def form_factor_jacobian(view: HemicubeView, interior: bool = True, shadow_edges: bool = True,
                          wanted: torch.Tensor | None = None, plane_ids: torch.Tensor | None = None
                          ) -> tuple[torch.Tensor, torch.Tensor]:
     """F_sj (T,), the hemicube form factors of every element, and their gradient J (T, 3)
     with respect to the eye (``form_factor_gradient``, same arguments)."""
-    F = element_form_factors(view.element, view.front, view.weight, len(view.normals))
-    return F, form_factor_gradient(view, interior, shadow_edges, wanted, plane_ids)
+    return view.form_factors, form_factor_gradient(view, interior, shadow_edges, wanted, plane_ids)

@@ -4,25 +4,33 @@ from __future__ import annotations
 import torch
 
 from hemirad.adaptive.criteria import CRITERIA, ShotContext
-from hemirad.output.display import luminance
+from hemirad.adaptive.shot import refining_shot
+from hemirad.core.colour import luminance
 from hemirad.core.fastops import flatnonzero
-from hemirad.adaptive.gradient import ShotView
 from hemirad.geometry.mesh import Mesh
 from hemirad.scene.model import RefineOptions
 from hemirad.geometry.split import SplitRounds
+from hemirad.transport.view import HemicubeView
 
 CHILDREN = {"pattern1": 3, "pattern2": 4}
 
 
 class Refiner:
-    """Chooses the elements to split during a shot and splits them.
+    """Chooses the elements to split during a shot and splits them; runs a solver's shots
+    (``shoot``: the ``transport.solver.ShotRefiner`` a ``ProgressiveSolver`` takes).
 
     Args:
         options: the scene's refine block.
         emission: (T, 3) per-element emission, for a threshold relative to the brightest emitter.
+        relabel: between the passes of a refining shot, carry the hemicube's item atlas over
+            to the children (``relabel.py``) instead of rendering again; the shot is still
+            committed with a real render of the final mesh.
+        bound: leave out of the interior Jacobian the receivers whose criterion bounds that
+            part of their score under the threshold (``could_exceed``): the same splits,
+            with less autograd work.
     """
 
-    def __init__(self, options: RefineOptions, emission: torch.Tensor):
+    def __init__(self, options: RefineOptions, emission: torch.Tensor, relabel: bool = True, bound: bool = True):
         if options.pattern not in CHILDREN:
             raise ValueError(f"unknown split pattern {options.pattern!r}")
         self.options = options
@@ -31,7 +39,13 @@ class Refiner:
         if options.relative and self.criterion.radiosity_units:
             self.threshold *= float(luminance(emission).max())
         self.children = CHILDREN[options.pattern]
+        self.relabel, self.bound = relabel, bound
         self.splits = 0
+
+    def shoot(self, solver, shooter: int, shot_power: torch.Tensor) -> HemicubeView:
+        """Run one shot of ``solver`` (a ``ProgressiveSolver``), splitting as the criterion
+        asks (``shot.refining_shot``); returns the view to commit."""
+        return refining_shot(self, solver, shooter, shot_power)
 
     def state_dict(self) -> dict:
         """What a resumed solve needs beyond the options: the split count and the threshold
@@ -66,7 +80,7 @@ class Refiner:
         candidates = self.splittable(ctx.mesh, ctx.shooter) if ctx.candidates is None else ctx.candidates
         return candidates, flatnonzero(candidates)
 
-    def could_exceed(self, ctx: ShotContext, view: ShotView, pixels: torch.Tensor | None = None
+    def could_exceed(self, ctx: ShotContext, view: HemicubeView, pixels: torch.Tensor | None = None
                      ) -> torch.Tensor | None:
         """(T,) bool: the pass's candidates whose score's interior part may pass the threshold
         (the criterion's ``interior_bound``), the only ones whose interior Jacobian is needed;

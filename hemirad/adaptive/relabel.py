@@ -5,18 +5,19 @@ pixel that saw the parent sees one of its descendants, the one whose triangle ho
 pixel's hit point. Relabelling the parents' pixels by that test gives the atlas a new
 render would give, except where a pixel centre lies within rounding of a new internal edge
 and GL's tie rule picks the other child (no such pixel on the tested scenes).
-The solver uses it between the passes of a refining shot and renders for real before the
+A refining shot (``shot.py``) uses it between its passes and renders for real before the
 shot is committed.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
 from hemirad.core.fastops import flatnonzero, marked_positions
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import inherit
+from hemirad.transport.view import HemicubeView
 
 
 @dataclass
@@ -35,6 +36,25 @@ class Descent:
     ordered: torch.Tensor
     start: torch.Tensor
     count: torch.Tensor
+
+
+def relabel_view(view: HemicubeView, parent: torch.Tensor, split: torch.Tensor, mesh: Mesh) -> HemicubeView:
+    """What the same hemicube sees after a split.
+
+    Args:
+        view: what it saw before.
+        parent: (T',) the old element each element of the new ``mesh`` lies in.
+        split: (K,) the old elements that were split, sorted.
+        mesh: the new elements.
+    Returns:
+        the view of ``mesh``, its ``relabelled_pixels`` the pixels whose element was split.
+    """
+    descent = descendants(parent, split)
+    pixels = split_pixels_of(view.element, descent)
+    element = relabel_atlas(view.element, view.hits(pixels), pixels, descent, mesh)
+    form_factors = relabel_form_factors(view.form_factors, descent, element, view.front, view.weight, pixels)
+    return replace(view, element=element, normals=mesh.normals, points=mesh.centroids, form_factors=form_factors,
+                   relabelled_pixels=pixels)
 
 
 def descendants(parent: torch.Tensor, split: torch.Tensor) -> Descent:

@@ -23,7 +23,8 @@ import numpy as np
 from scipy import ndimage
 from skimage.metrics import structural_similarity
 
-from hemirad.output.display import MIDDLE_GREY, REC709_LUMINANCE, srgb_encode
+from hemirad.core.colour import REC709_LUMINANCE
+from hemirad.output.display import MIDDLE_GREY, srgb_encode
 
 #: eps_c of ``mean_relative_error`` as a fraction of the channel's mean reference value.
 RELATIVE_ERROR_FLOOR = 0.01

@@ -13,6 +13,7 @@ import torch
 from hemirad.geometry.analytic import point_to_triangles
 from hemirad.transport.formfactor import decode_items, delta_form_factors
 from hemirad.transport.hemicube import Hemicube, tangent_frame
+from hemirad.transport.renderer import clip_planes
 from hemirad.geometry.mesh import Mesh
 
 
@@ -29,8 +30,7 @@ def visible_light_fraction(mesh: Mesh, emitting: torch.Tensor, points: torch.Ten
     """
     weights = delta_form_factors(resolution)
     lamp = mesh.corners[emitting]
-    lo, hi = mesh.bounding_box()
-    diagonal = float((hi - lo).norm())
+    near, far = clip_planes(mesh)
     normal = torch.as_tensor(normal, dtype=torch.float64)
     frame = tangent_frame(normal.numpy(), np.array([1.0, 0.0, 0.0]) + np.array([0.0, 0.0, 1e-3]))
     hemicube = Hemicube(resolution)
@@ -38,8 +38,8 @@ def visible_light_fraction(mesh: Mesh, emitting: torch.Tensor, points: torch.Ten
         hemicube.set_geometry(mesh.vertices, mesh.triangles)
         out = torch.empty(len(points), dtype=torch.float64)
         for i, p in enumerate(points):
-            eye = p + 1e-6 * diagonal * normal
-            element, front = decode_items(hemicube.render(eye.numpy(), frame, 1e-6 * diagonal, 1.01 * diagonal))
+            eye = p + near * normal
+            element, front = decode_items(hemicube.render(eye.numpy(), frame, near, far))
             sees_light = front & (element >= 0) & emitting[element.clamp(min=0)]
             unoccluded = point_to_triangles(eye, normal, lamp).sum()
             out[i] = weights[sees_light].sum() / unoccluded if unoccluded > 0 else float("nan")

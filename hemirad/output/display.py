@@ -18,12 +18,9 @@ import math
 import numpy as np
 import torch
 
-from hemirad.core.device import as_tensor
+from hemirad.core.colour import luminance
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import midpoint_lookup
-
-# Rec. 709 / sRGB primaries: relative luminance of linear RGB.
-REC709_LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 # Linear display value that the mean scene luminance is mapped to by automatic exposure.
 MIDDLE_GREY = 0.18
@@ -70,14 +67,6 @@ def vertex_values(mesh: Mesh, element_values: torch.Tensor) -> torch.Tensor:
         plain_sum / count.clamp_min(1.0)[:, None],
     )
     return result[:, 0] if squeeze else result
-
-
-def luminance(rgb: torch.Tensor) -> torch.Tensor:
-    """(..., 3) linear RGB -> (...) relative luminance (Rec. 709 weights)."""
-    rgb = as_tensor(rgb)
-    weights = torch.tensor(REC709_LUMINANCE, dtype=rgb.dtype if rgb.is_floating_point() else torch.float64,
-                           device=rgb.device)
-    return rgb.to(weights.dtype) @ weights
 
 
 def auto_exposure(element_values: torch.Tensor, areas: torch.Tensor, emitting: torch.Tensor) -> float:

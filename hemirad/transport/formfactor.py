@@ -6,15 +6,13 @@ half-height side faces, rows bottom-up inside each face.
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import torch
 
 from hemirad.core.device import cached_per_device
 from hemirad.core.fastops import on_host
-from hemirad.transport.hemicube import BACK_FACE_BIT, FACES, Hemicube, face_viewports, tangent_frame
-from hemirad.geometry.mesh import Mesh
+from hemirad.transport.hemicube import BACK_FACE_BIT, FACES, face_viewports
 
 
 @cached_per_device
@@ -105,69 +103,3 @@ def sum_by_index(index: torch.Tensor, values: torch.Tensor, size: int) -> torch.
     if on_host(index):
         return torch.bincount(index, weights=values, minlength=size)
     return torch.zeros(size, dtype=values.dtype, device=values.device).index_add_(0, index, values)
-
-
-class HemicubeFormFactors:
-    """Form factors from any element of a mesh to all of them, by hemicube rendering.
-
-    Args:
-        mesh: the elements (triangles counter-clockwise seen from the front).
-        resolution: hemicube resolution R.
-        cull: draw each hemicube face only the triangles that can reach it (same result, faster).
-        device: where the torch work runs (the mesh's tensors must be there); on CUDA the
-            OpenGL context must be on the GPU too (``GLContext.get(gpu=True)``).
-    Attributes:
-        seconds: time spent in the torch part (decoding and summing), beside the
-            hemicube's own ``raster_seconds`` and ``readback_seconds``.
-    """
-
-    def __init__(self, mesh: Mesh, resolution: int, cull: bool = True, device: torch.device | str = "cpu"):
-        self.device = torch.device(device)
-        self.weights = delta_form_factors(resolution, self.device)
-        lo, hi = mesh.bounding_box()
-        diagonal = float((hi - lo).norm())
-        # The eye sits just off the shooter so that its own plane (and coplanar neighbours)
-        # falls below every face's field of view; depth is linear, so a close near plane is safe.
-        self.eye_offset = self.near = 1e-6 * diagonal
-        self.far = 1.01 * diagonal
-        self.hemicube = Hemicube(resolution, cull, gpu=self.device.type == "cuda")
-        self.set_geometry(mesh)
-        self.seconds = 0.0
-
-    def set_geometry(self, mesh: Mesh) -> None:
-        """Replace the mesh (after refinement); it must stay inside the first one's bounds."""
-        self.mesh, self.normals, self.centroids = mesh, mesh.normals, mesh.centroids
-        self.hemicube.set_geometry(mesh.vertices, mesh.triangles)
-
-    def close(self) -> None:
-        self.hemicube.release()
-
-    def render(self, shooter: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
-        """Render the hemicube of element ``shooter`` (a point at its centroid).
-
-        Returns:
-            element (3R, R) int64 and front (3R, R) bool (see ``decode_items``) on the
-            device, the eye (3,) and the hemicube's frame (3, 3) as NumPy arrays.
-        """
-        normal = self.normals[shooter].cpu().numpy()
-        corners = self.mesh.corners_of(shooter).cpu().numpy()
-        frame = tangent_frame(normal, corners[1] - corners[0])
-        eye = self.centroids[shooter].cpu().numpy() + self.eye_offset * normal
-        items = self.hemicube.render(eye, frame, self.near, self.far)
-        start = time.perf_counter()
-        element, front = decode_items(items)
-        element, front = element.to(self.device), front.to(self.device)
-        self.seconds += time.perf_counter() - start
-        return element, front, eye, frame
-
-    def from_element(self, shooter: int) -> torch.Tensor:
-        """(T,) F_sj from element ``shooter`` to every element j."""
-        element, front, _, _ = self.render(shooter)
-        start = time.perf_counter()
-        F = element_form_factors(element, front, self.weights, self.mesh.num_elements)
-        self.seconds += time.perf_counter() - start
-        return F
-
-    def timings(self) -> dict[str, float]:
-        return {"raster": self.hemicube.raster_seconds, "readback": self.hemicube.readback_seconds,
-                "form_factors": self.seconds}

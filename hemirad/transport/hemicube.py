@@ -24,6 +24,7 @@ import moderngl
 import numpy as np
 import torch
 
+from hemirad.core.timing import Profiler
 from hemirad.transport.gl import GLContext
 
 BACK_FACE_BIT = 1 << 31
@@ -134,13 +135,13 @@ class Hemicube:
             atlas is the same without it (every face then draws every triangle); the
             option exists to show that.
         gpu: draw with the process's GPU context (``GLContext.get(gpu=True)``).
+        profiler: accumulates the ``raster`` (culling and drawing) and ``readback`` seconds;
+            a new one when None.
     Attributes:
-        raster_seconds, readback_seconds: accumulated time in drawing (culling included) and
-            in read-back.
         drawn_triangles: triangles drawn by the last render, over its five faces.
     """
 
-    def __init__(self, resolution: int, cull: bool = True, gpu: bool = False):
+    def __init__(self, resolution: int, cull: bool = True, gpu: bool = False, profiler: Profiler | None = None):
         if resolution < 2 or resolution % 2:
             raise ValueError(f"hemicube resolution must be an even number >= 2, got {resolution}")
         self.resolution = resolution
@@ -160,7 +161,7 @@ class Hemicube:
         self._triangles = np.zeros((0, 3), dtype=np.uint32)
         self._pending = None
         self.num_triangles = self.drawn_triangles = 0
-        self.raster_seconds = self.readback_seconds = 0.0
+        self.profiler = profiler if profiler is not None else Profiler(("raster", "readback"))
 
     def set_geometry(self, vertices: torch.Tensor, triangles: torch.Tensor) -> None:
         """Set the mesh to draw; item ids are the triangles' row indices. It is uploaded by
@@ -243,8 +244,8 @@ class Hemicube:
         if self.cull:  # position in the drawn list -> triangle id, keeping the back-face bit
             lookup = np.concatenate([[0], ids + 1]).astype(np.uint32)
             items = lookup[items & (BACK_FACE_BIT - 1)] | (items & BACK_FACE_BIT)
-        self.raster_seconds += mid - start
-        self.readback_seconds += time.perf_counter() - mid
+        self.profiler.add("raster", mid - start)
+        self.profiler.add("readback", time.perf_counter() - mid)
         return items
 
 

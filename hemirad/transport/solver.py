@@ -8,21 +8,21 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Protocol
 
 import torch
 
-from hemirad.adaptive.criteria import ShotContext
-from hemirad.output.display import luminance
 from hemirad.core.fastops import row_sums
-from hemirad.transport.formfactor import HemicubeFormFactors, element_form_factors
-from hemirad.transport.gl import GLContext
-from hemirad.adaptive.gradient import ShotView, form_factor_gradient
-from hemirad.geometry.mesh import Mesh
-from hemirad.adaptive.refine import Refiner
-from hemirad.adaptive.relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
 from hemirad.core.runtime import deterministic, keep_freed_memory, torch_threads
-from hemirad.geometry.split import GrowingRows, inherit
+from hemirad.core.timing import Profiler
+from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.split import GrowingRows
+from hemirad.transport.gl import GLContext
+from hemirad.transport.renderer import HemicubeRenderer
+from hemirad.transport.view import HemicubeView
+
+# The phases a solve's time is reported in (``ProgressiveSolver.timings``, stats.json).
+PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
@@ -52,37 +52,6 @@ def ambient_term(unshot: torch.Tensor, reflectance: torch.Tensor, areas: torch.T
     mean_reflectance = (reflectance * areas[:, None]).sum(0) / total_area
     mean_unshot = (unshot * areas[:, None]).sum(0) / total_area
     return mean_unshot / (1.0 - mean_reflectance)
-
-
-@dataclass
-class Seen:
-    """What one pass's hemicube sees (P pixels, flattened), rendered or relabelled.
-
-    Attributes:
-        element: (P,) element per pixel, -1 for none; front: (P,) bool.
-        eye: (3,) and frame: (3, 3) of the hemicube.
-        form_factors: (T,) F_sj summed from these pixels.
-        changed: (N,) for a relabelled atlas, the pixels relabelled (the only ones that see
-            new elements); None for a render.
-    """
-
-    element: torch.Tensor
-    front: torch.Tensor
-    eye: torch.Tensor
-    frame: object
-    form_factors: torch.Tensor
-    changed: torch.Tensor | None = None
-
-    def relabelled(self, view: ShotView, parent: torch.Tensor, split: torch.Tensor, mesh: Mesh,
-                   weight: torch.Tensor) -> "Seen":
-        """What the same hemicube sees after a split (``relabel.py``): ``parent`` (T',) maps
-        the new ``mesh``'s elements to the old ones, of which the (K,) sorted ``split`` were
-        split; ``view`` is this pass's ShotView."""
-        descent = descendants(parent, split)
-        pixels = split_pixels_of(self.element, descent)
-        element = relabel_atlas(self.element, view.hits(pixels), pixels, descent, mesh)
-        form_factors = relabel_form_factors(self.form_factors, descent, element, self.front, weight, pixels)
-        return Seen(element, self.front, self.eye, self.frame, form_factors, pixels)
 
 
 @dataclass
@@ -118,32 +87,44 @@ class ShotReport:
     seconds: float
 
 
+class ShotRefiner(Protocol):
+    """What refines the mesh during a shot (``adaptive.refine.Refiner``): the solver hands it
+    each shot and commits the view it returns.
+
+    ``shoot`` may render the shooter's hemicube several times, split receivers through
+    ``ProgressiveSolver.adopt_split`` between the renders, and returns what the committed
+    pass saw, a real render of the final mesh. ``state_dict`` / ``load_state_dict`` carry
+    what a resumed solve needs beyond the options.
+    """
+
+    def shoot(self, solver: "ProgressiveSolver", shooter: int, shot_power: torch.Tensor) -> HemicubeView: ...
+
+    def state_dict(self) -> dict: ...
+
+    def load_state_dict(self, state: dict) -> None: ...
+
+
 class ProgressiveSolver:
     """Shoots until a shot count or an unshot-energy fraction is reached, refining the mesh
-    during each shot when given a ``Refiner``.
+    during each shot when given a refiner.
 
     Args:
         mesh: the initial elements.
         reflectance, emission: (T, 3) per element.
         resolution: hemicube resolution R.
-        refiner: splits receivers during shots (DESIGN §3); None for a fixed mesh.
+        refiner: splits receivers during shots (``ShotRefiner``; docs/DESIGN.md §3); None
+            for a fixed mesh.
         cull: per-face frustum culling in the hemicube (the same numbers, drawn faster).
-        relabel: between the passes of a refining shot, carry the hemicube's item atlas over
-            to the children (``relabel.py``) instead of rendering again; the shot is still
-            committed with a real render of the final mesh.
-        bound: leave out of the interior Jacobian the receivers whose criterion bounds that
-            part of their score under the threshold (``Refiner.could_exceed``): the same
-            splits, with less autograd work.
         device: where the tensors live and the torch work runs (``device.select_device``);
             on CUDA the hemicubes are drawn by the GPU's OpenGL context. The inputs may be
             anywhere; ``state_dict`` is always on the CPU.
     Attributes:
         mesh, reflectance, emission, areas: current, as refinement changes them (on ``device``).
+        profiler: the seconds spent per phase (``PHASES``), the refiner's included.
     """
 
     def __init__(self, mesh: Mesh, reflectance: torch.Tensor, emission: torch.Tensor, resolution: int,
-                 refiner: Refiner | None = None, cull: bool = True, relabel: bool = True, bound: bool = True,
-                 device: torch.device | str = "cpu"):
+                 refiner: ShotRefiner | None = None, cull: bool = True, device: torch.device | str = "cpu"):
         self.device = torch.device(device)
         mesh = mesh.to(self.device)
         reflectance, emission = reflectance.to(self.device), emission.to(self.device)
@@ -151,57 +132,21 @@ class ProgressiveSolver:
         self.areas = mesh.areas
         self._adopt(reflectance, emission, SolverState(radiosity=emission.clone(), unshot=emission.clone()))
         self.emitted_power = (emission * self.areas[:, None]).sum(0)  # (3,)
-        self.form_factors = HemicubeFormFactors(mesh, resolution, cull, self.device)
+        self.profiler = Profiler(PHASES)
+        self.renderer = HemicubeRenderer(mesh, resolution, cull, self.device, self.profiler)
         self.refiner = refiner
-        self.relabel = relabel
-        self.bound = bound
-        self.update_seconds = self.gradient_seconds = self.refine_seconds = 0.0
 
     def close(self) -> None:
-        self.form_factors.close()
+        self.renderer.close()
 
     @property
     def unshot_fraction(self) -> float:
         unshot_power = (self.state.unshot * self.areas[:, None]).sum()
         return float(unshot_power / self.emitted_power.sum())
 
-    def _render(self, shooter: int) -> "Seen":
-        """What the hemicube of ``shooter`` sees, rendered, with F_sj."""
-        ff = self.form_factors
-        element, front, eye, frame = ff.render(shooter)
-        element, front = element.reshape(-1), front.reshape(-1)
-        start = time.perf_counter()
-        F = element_form_factors(element, front, ff.weights.reshape(-1), self.mesh.num_elements)
-        ff.seconds += time.perf_counter() - start
-        return Seen(element, front, torch.from_numpy(eye).to(self.device), frame, F)
-
-    def _gradient(self, seen: "Seen", ctx: ShotContext) -> tuple[torch.Tensor | None, ShotView]:
-        """dF_sj/dc when the criterion reads it (else None), and the pass's ShotView.
-
-        J is computed for the pass's candidates whose score could pass the threshold
-        (``Refiner.could_exceed``); its other rows are zero.
-        """
-        ff = self.form_factors
-        start = time.perf_counter()
-        view = ShotView.from_render(seen.element, seen.front, ff.weights, seen.eye, seen.frame, ff.normals,
-                                    ff.centroids)
-        wanted = self.refiner.jacobian
-        J = None
-        if wanted is not None:
-            options = self.refiner.options
-            J = form_factor_gradient(view, interior=options.interior or wanted == "interior",
-                                     shadow_edges=options.shadow_edges and wanted == "full", wanted=ctx.candidates,
-                                     plane_ids=self.mesh.plane_ids, pixels=seen.changed,
-                                     interior_wanted=self.refiner.could_exceed(ctx, view, seen.changed) if self.bound else None)
-        self.gradient_seconds += time.perf_counter() - start
-        return J, view
-
-    def _luminance_per_form_factor(self, shot_power: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
-        """(T,) or (R,) for ``rows``: the luminance of what a receiver gets per unit F_sj from
-        ``shot_power`` (3,), rho_j dB_s A_s / A_j; a child's differs from its parent's by its area."""
-        if rows is None:
-            return luminance(self.reflectance * shot_power) / self.areas
-        return luminance(self.reflectance.index_select(0, rows) * shot_power) / self.areas.index_select(0, rows)
+    def render(self, shooter: int) -> HemicubeView:
+        """What the hemicube of element ``shooter`` sees on the current mesh, with F_sj."""
+        return self.renderer.render(shooter)
 
     def _adopt(self, reflectance: torch.Tensor, emission: torch.Tensor, state: SolverState) -> None:
         """Make these the per-element values, kept in buffers that splits append to
@@ -210,34 +155,22 @@ class ProgressiveSolver:
         self.reflectance, self.emission, state.radiosity, state.unshot = (rows.values for rows in self._per_element)
         self.state = state
 
-    def _split(self, selected: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Split the selected elements; children inherit B and dB. Every element keeps its
-        index (a split one's now holds its first child: ``split.split_triangles``).
-
-        Returns:
-            (T',) the old element each new one lies in, and (K,) the old elements that were
-            split (the selected ones and those grading added), sorted.
-        """
-        T = self.mesh.num_elements
-        self.mesh, parent = self.refiner.split(self.mesh, selected)
+    def adopt_split(self, mesh: Mesh, parent: torch.Tensor) -> None:
+        """Continue on ``mesh``, made by splitting the current one: its element i lies in the
+        current element ``parent[i]`` (T',), and inherits its B and dB (radiosities, so power
+        is conserved) and its reflectance and emission. Every element keeps its index (a
+        split one's now holds its first child: ``split.split_triangles``)."""
+        self.mesh = mesh
         self.reflectance, self.emission, self.state.radiosity, self.state.unshot = (
             rows.inherit(parent) for rows in self._per_element)
-        self.areas = self.mesh.areas
-        self.form_factors.set_geometry(self.mesh)
-        return parent, torch.unique(parent[T:])
+        self.areas = mesh.areas
+        self.renderer.set_geometry(mesh)
 
     def shoot(self) -> int | None:
         """One shot from the element with the largest unshot power; None when nothing is left.
 
-        With a refiner, receivers it selects are split and the shot is redone on the new
-        elements before anything is committed, until no receiver needs splitting. Each pass
-        judges only the elements the previous one made: the first judges every splittable
-        receiver, the next the children of those it split, and so on down the levels, as a
-        recursive subdivision would. Unsplit receivers keep their pixels, so judging them
-        again would only repeat the verdict (or follow the hemicube's aliasing at split
-        edges); gradients are computed for the judged receivers only. Between passes what the
-        hemicube sees is carried over to the children (``relabel``) rather than rendered
-        again; the pass that is committed is always a real render.
+        With a refiner, the refiner runs the shot (it may split receivers and redo it
+        before anything is committed); the view it returns is committed.
         """
         state = self.state
         power = state.unshot * self.areas[:, None]  # (T, 3)
@@ -245,45 +178,21 @@ class ProgressiveSolver:
         shot_power = power[shooter].clone()
         if float(shot_power.sum()) <= 0.0:
             return None
-        candidates = None if self.refiner is None else self.refiner.splittable(self.mesh, shooter)
-        gain = None if self.refiner is None else self._luminance_per_form_factor(shot_power)
-        relabelled = None  # what the next pass sees, when carried over instead of rendered
-        while True:
-            seen = relabelled if relabelled is not None else self._render(shooter)
-            if self.refiner is None:
-                break
-            start = time.perf_counter()
-            ctx = ShotContext(self.mesh, shooter, seen.eye, self.form_factors.normals[shooter], seen.form_factors,
-                              gain, None, candidates)
-            self.refine_seconds += time.perf_counter() - start
-            ctx.jacobian, view = self._gradient(seen, ctx)
-            start = time.perf_counter()
-            selected = self.refiner.select(ctx)
-            if not bool(selected.any()):
-                self.refine_seconds += time.perf_counter() - start
-                if relabelled is not None:  # commit what a real render of the final mesh sees
-                    seen = self._render(shooter)
-                break
-            T = self.mesh.num_elements
-            parent, split = self._split(selected)
-            new = torch.cat([split, torch.arange(T, len(parent), device=self.device)])  # their rows in the new mesh
-            candidates = self.refiner.splittable(self.mesh, shooter, new)
-            gain = inherit(gain, parent).index_copy_(0, new, self._luminance_per_form_factor(shot_power, new))
-            relabelled = None
-            if self.relabel and not bool((split == shooter).any()):  # the eye has not moved
-                relabelled = seen.relabelled(view, parent, split, self.mesh, self.form_factors.weights.reshape(-1))
-            self.refine_seconds += time.perf_counter() - start
-        F = seen.form_factors
+        view = self.render(shooter) if self.refiner is None else self.refiner.shoot(self, shooter, shot_power)
+        with self.profiler.phase("update"):
+            self._commit(shooter, shot_power, view.form_factors)
+        return shooter
+
+    def _commit(self, shooter: int, shot_power: torch.Tensor, F: torch.Tensor) -> None:
+        """Hand every receiver what the shot of ``shot_power`` (3,) with form factors F (T,) gives it."""
+        state = self.state
         delta = received_radiosity(F, shot_power, self.reflectance, self.areas)
-        start = time.perf_counter()
         state.radiosity += delta
         state.unshot += delta
         state.unshot[shooter] = 0.0
         state.absorbed += ((1.0 - self.reflectance) * F[:, None]).sum(0) * shot_power
         state.escaped += (1.0 - F.sum()) * shot_power
         state.shots += 1
-        self.update_seconds += time.perf_counter() - start
-        return shooter
 
     def run(self, max_shots: int, unshot_fraction: float,
             progress: Callable[[ShotReport], None] | None = None) -> SolverState:
@@ -300,8 +209,8 @@ class ProgressiveSolver:
         return self.state
 
     def timings(self) -> dict[str, float]:
-        return {**self.form_factors.timings(), "gradient": self.gradient_seconds,
-                "refine": self.refine_seconds, "update": self.update_seconds}
+        """Seconds per phase so far (``PHASES``)."""
+        return self.profiler.state_dict()
 
     def state_dict(self) -> dict:
         """Everything later shots depend on, as plain tensors, numbers and strings.
@@ -338,6 +247,9 @@ class ProgressiveSolver:
                 raise ValueError(f"{key} must be a (3,) tensor")
         if (state["refiner"] is None) != (self.refiner is None):
             raise ValueError("the state was saved with refinement " + ("off" if state["refiner"] is None else "on"))
+        timings = state["timings"]
+        if not isinstance(timings, dict) or set(timings) != set(PHASES):
+            raise ValueError(f"timings must give the seconds of {', '.join(PHASES)}")
         self.mesh, self.areas = mesh, mesh.areas
         per_element = {k: v.to(self.device) for k, v in per_element.items()}
         self._adopt(per_element["reflectance"], per_element["emission"],
@@ -346,11 +258,5 @@ class ProgressiveSolver:
         self.emitted_power = state["emitted_power"].to(torch.float64).to(self.device)
         if self.refiner is not None:
             self.refiner.load_state_dict(state["refiner"])
-        self.form_factors.set_geometry(mesh)
-        t = state["timings"]
-        self.form_factors.hemicube.raster_seconds = float(t["raster"])
-        self.form_factors.hemicube.readback_seconds = float(t["readback"])
-        self.form_factors.seconds = float(t["form_factors"])
-        self.gradient_seconds, self.refine_seconds, self.update_seconds = (
-            float(t["gradient"]), float(t["refine"]), float(t["update"]))
-
+        self.renderer.set_geometry(mesh)
+        self.profiler.load_state_dict(timings)

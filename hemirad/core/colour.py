@@ -1,0 +1,17 @@
+"""Colour conventions shared by the solver, the refinement criteria and the display."""
+from __future__ import annotations
+
+import torch
+
+from hemirad.core.device import as_tensor
+
+# Rec. 709 / sRGB primaries: relative luminance of linear RGB.
+REC709_LUMINANCE = (0.2126, 0.7152, 0.0722)
+
+
+def luminance(rgb: torch.Tensor) -> torch.Tensor:
+    """(..., 3) linear RGB -> (...) relative luminance (Rec. 709 weights)."""
+    rgb = as_tensor(rgb)
+    weights = torch.tensor(REC709_LUMINANCE, dtype=rgb.dtype if rgb.is_floating_point() else torch.float64,
+                           device=rgb.device)
+    return rgb.to(weights.dtype) @ weights

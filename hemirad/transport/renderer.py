@@ -1,0 +1,77 @@
+"""Hemicubes of a mesh's elements, rendered and turned into ``HemicubeView`` records."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from hemirad.core.timing import Profiler
+from hemirad.geometry.mesh import Mesh
+from hemirad.transport.formfactor import decode_items, delta_form_factors, element_form_factors
+from hemirad.transport.hemicube import Hemicube, tangent_frame
+from hemirad.transport.view import HemicubeView
+
+
+def clip_planes(mesh: Mesh) -> tuple[float, float]:
+    """The (near, far) distances of a hemicube in ``mesh``'s scene; near is also how far the
+    eye sits off the shooter's plane.
+
+    The eye sits just off the shooter so that its own plane (and coplanar neighbours) falls
+    below every face's field of view; depth is linear (``hemicube.py``), so a near plane
+    this close loses no precision.
+    """
+    lo, hi = mesh.bounding_box()
+    diagonal = float((hi - lo).norm())
+    return 1e-6 * diagonal, 1.01 * diagonal
+
+
+class HemicubeRenderer:
+    """What the hemicube of any element of a mesh sees, and so its form factors to all of them.
+
+    Args:
+        mesh: the elements (triangles counter-clockwise seen from the front); its bounds
+            fix the clip planes (``clip_planes``) for this renderer's life.
+        resolution: hemicube resolution R.
+        cull: draw each hemicube face only the triangles that can reach it (same result, faster).
+        device: where the torch work runs (the mesh's tensors must be there); on CUDA the
+            OpenGL context must be on the GPU too (``GLContext.get(gpu=True)``).
+        profiler: accumulates ``raster``, ``readback`` and ``form_factors`` (decoding and
+            summing) seconds; a new one when None.
+    """
+
+    def __init__(self, mesh: Mesh, resolution: int, cull: bool = True, device: torch.device | str = "cpu",
+                 profiler: Profiler | None = None):
+        self.device = torch.device(device)
+        self.profiler = profiler if profiler is not None else Profiler(("raster", "readback", "form_factors"))
+        self.weights = delta_form_factors(resolution, self.device)  # (3R, R)
+        self.near, self.far = clip_planes(mesh)
+        self.hemicube = Hemicube(resolution, cull, gpu=self.device.type == "cuda", profiler=self.profiler)
+        self.set_geometry(mesh)
+
+    def set_geometry(self, mesh: Mesh) -> None:
+        """Replace the mesh (after refinement); it must stay inside the first one's bounds."""
+        self.mesh = mesh
+        self.hemicube.set_geometry(mesh.vertices, mesh.triangles)
+
+    def close(self) -> None:
+        self.hemicube.release()
+
+    def render(self, shooter: int) -> HemicubeView:
+        """Render the hemicube of element ``shooter`` (a point at its centroid) and sum its
+        form factors to every element."""
+        mesh = self.mesh
+        normal = mesh.normals[shooter].cpu().numpy()
+        corners = mesh.corners_of(shooter).cpu().numpy()
+        frame = tangent_frame(normal, corners[1] - corners[0])
+        eye = mesh.centroids[shooter].cpu().numpy() + self.near * normal
+        items = self.hemicube.render(eye, frame, self.near, self.far)
+        with self.profiler.phase("form_factors"):
+            element, front = (x.to(self.device).reshape(-1) for x in decode_items(items))
+            weight = self.weights.reshape(-1)
+            F = element_form_factors(element, front, weight, mesh.num_elements)
+        return HemicubeView(element, front, weight, torch.from_numpy(eye).to(self.device),
+                            torch.from_numpy(np.ascontiguousarray(frame, dtype=np.float64)).to(self.device),
+                            mesh.normals, mesh.centroids, F, self.hemicube.resolution)
+
+    def from_element(self, shooter: int) -> torch.Tensor:
+        """(T,) F_sj from element ``shooter`` to every element j."""
+        return self.render(shooter).form_factors
