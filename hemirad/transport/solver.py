@@ -2,7 +2,7 @@
 
 The state is per element: radiosity B and unshot radiosity dB, (T, 3) float64 each. A shot
 takes the element with the most unshot power, renders its hemicube, and hands every
-receiver j the radiosity  rho_j dB_s F_sj A_s / A_j  (DESIGN §1).
+receiver j the radiosity  rho_j dB_s F_sj A_s / A_j  (docs/DESIGN.md §1).
 """
 from __future__ import annotations
 
@@ -126,7 +126,7 @@ class ProgressiveSolver:
         mesh: the initial elements.
         reflectance, emission: (T, 3) per element.
         resolution: hemicube resolution R.
-        refiner: splits receivers during shots (DESIGN §3); None for a fixed mesh.
+        refiner: splits receivers during shots (docs/DESIGN.md §3); None for a fixed mesh.
         cull: per-face frustum culling in the hemicube (the same numbers, drawn faster).
         relabel: between the passes of a refining shot, carry the hemicube's item atlas over
             to the children (``relabel.py``) instead of rendering again; the shot is still
