@@ -1,4 +1,4 @@
-"""Gradients of the form factors with respect to the shooter's position (DESIGN §2)."""
+"""Gradients of the form factors with respect to the shooter's position (docs/DESIGN.md §2)."""
 import math
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Form factors as differentiable functions of the shooter's position (DESIGN §2).
+"""Form factors as differentiable functions of the shooter's position (docs/DESIGN.md §2).
 
 The hemicube's item buffer is a step function of the eye position; what it sees is turned
 into a smooth torch expression of the eye c whose value at the rendered eye c0 is the

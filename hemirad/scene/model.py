@@ -106,7 +106,7 @@ class SolverOptions:
 
 @dataclass
 class RefineOptions:
-    """Adaptive meshing during the solve (DESIGN §2, §3)."""
+    """Adaptive meshing during the solve (docs/DESIGN.md §2, §3)."""
 
     pattern: str = "none"  # none, pattern1 (centroid, 1 -> 3) or pattern2 (midpoints, 1 -> 4)
     criterion: str = "gradient"  # see hemirad.criteria.CRITERIA

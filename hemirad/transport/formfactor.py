@@ -36,7 +36,7 @@ def hemicube_directions(resolution: int) -> torch.Tensor:
 
 
 def raw_delta_form_factors(resolution: int) -> torch.Tensor:
-    """The textbook point-sampled weights of every pixel (DESIGN §1).
+    """The textbook point-sampled weights of every pixel (docs/DESIGN.md §1).
 
     For the pixel at d = (x, y, z) on the unit cube, cos at the eye is z / |d| and cos at the
     pixel's face is 1 / |d|, so dF = z dA / (pi |d|^4) with dA = (2/R)^2: this is

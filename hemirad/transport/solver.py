@@ -2,7 +2,7 @@
 
 The state is per element: radiosity B and unshot radiosity dB, (T, 3) float64 each. A shot
 takes the element with the most unshot power, renders its hemicube, and hands every
-receiver j the radiosity  rho_j dB_s F_sj A_s / A_j  (DESIGN §1).
+receiver j the radiosity  rho_j dB_s F_sj A_s / A_j  (docs/DESIGN.md §1).
 """
 from __future__ import annotations
 
