@@ -221,46 +221,79 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     # Built from the initial mesh even when resuming: its bounds set the hemicube's near and
     # far planes, which must be those of the run being continued.
     solver = make_solver(scene, mesh, device=device)
-    refiner = solver.refiner
     before = {"mesh": 0.0, "solve": 0.0}  # seconds spent by the runs this one continues
     resumed_from = None
     try:
         if saved is not None:
             before = _restore(solver, *saved, checkpoint, mesh.num_elements)
             resumed_from = solver.state.shots
-        on_shot, last_saved = progress, [None if saved is None else solver.state.shots]
 
-        def save():
-            run = {"initial_elements": mesh.num_elements,
-                   "seconds": {"mesh": before["mesh"] + meshed - start,
-                               "solve": before["solve"] + time.perf_counter() - meshed}}
-            checkpoints.write(checkpoint, fingerprint, solver.state_dict(), run)
-            last_saved[0] = solver.state.shots
+        def elapsed() -> dict[str, float]:
+            return {"mesh": before["mesh"] + meshed - start, "solve": before["solve"] + time.perf_counter() - meshed}
 
-        if checkpoint_every:
-            def on_shot(report: ShotReport) -> None:
-                if report.shots % checkpoint_every == 0:  # counted from the run's start, resumed or not
-                    save()
-                if progress is not None:
-                    progress(report)
-
-        state = solver.run(options.max_shots, options.unshot_fraction, on_shot)
-        if checkpoint is not None and solver.state.shots != last_saved[0]:
-            save()
+        saver = None
+        if checkpoint is not None:
+            saver = _CheckpointWriter(checkpoint, fingerprint, checkpoint_every, solver, mesh.num_elements, elapsed,
+                                      None if saved is None else solver.state.shots)
+        state = solver.run(options.max_shots, options.unshot_fraction,
+                           progress if saver is None else saver.after_shot(progress))
+        if saver is not None:
+            saver.finish()
     finally:
         solver.close()
-    solved = time.perf_counter()
     final = solver.mesh.to("cpu")
-    levels = torch.bincount(final.level)
-    stats = {
+    stats = _stats(scene, solver, final, mesh.num_elements, elapsed(), resumed_from)
+    return Result(scene, final, state.radiosity.cpu(), state.unshot.cpu(), solver.reflectance.cpu(),
+                  solver.emission.cpu(), stats)
+
+
+class _CheckpointWriter:
+    """Writes a solve's checkpoint every ``every`` shots (counted from the run's start,
+    resumed or not; 0 for never) and when it ends, with the run's initial element count and
+    its seconds so far (``elapsed()``)."""
+
+    def __init__(self, path, fingerprint: str, every: int, solver: ProgressiveSolver, initial_elements: int,
+                 elapsed: Callable[[], dict], last_saved: int | None):
+        self.path, self.fingerprint, self.every, self.solver = path, fingerprint, every, solver
+        self.initial_elements, self.elapsed, self.last_saved = initial_elements, elapsed, last_saved
+
+    def save(self) -> None:
+        run = {"initial_elements": self.initial_elements, "seconds": self.elapsed()}
+        checkpoints.write(self.path, self.fingerprint, self.solver.state_dict(), run)
+        self.last_saved = self.solver.state.shots
+
+    def after_shot(self, progress: Callable[[ShotReport], None] | None) -> Callable[[ShotReport], None] | None:
+        """The solver's per-shot callback: save when due, then report ``progress``."""
+        if not self.every:
+            return progress
+
+        def on_shot(report: ShotReport) -> None:
+            if report.shots % self.every == 0:
+                self.save()
+            if progress is not None:
+                progress(report)
+
+        return on_shot
+
+    def finish(self) -> None:
+        """Save the final state (so a finished run can be continued), unless just saved."""
+        if self.solver.state.shots != self.last_saved:
+            self.save()
+
+
+def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_elements: int, seconds: dict,
+           resumed_from: int | None) -> dict:
+    """What stats.json says of a finished solve; ``final``: its mesh on the CPU."""
+    state, refiner = solver.state, solver.refiner
+    return {
         "scene": str(scene.source) if scene.source else None,
         "elements": final.num_elements,
-        "initial_elements": mesh.num_elements,
-        "elements_per_level": levels.tolist(),
+        "initial_elements": initial_elements,
+        "elements_per_level": torch.bincount(final.level).tolist(),
         "surfaces": len(final.surface_names),
         "shots": state.shots,
         "unshot_fraction": solver.unshot_fraction,
-        "hemicube_resolution": options.resolution,
+        "hemicube_resolution": scene.solver.resolution,
         "refine": {"pattern": scene.refine.pattern, "criterion": scene.refine.criterion,
                    "threshold": scene.refine.threshold, "relative": scene.refine.relative,
                    "absolute_threshold": refiner.threshold if refiner else None,
@@ -270,10 +303,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
         "absorbed_power": state.absorbed.tolist(),
         "escaped_power": state.escaped.tolist(),
         "gl_renderer": GLContext.renderer_name(),
-        "device": str(device),
+        "device": str(solver.device),
         "resumed_from_shot": resumed_from,
-        "seconds": {"mesh": before["mesh"] + meshed - start, "solve": before["solve"] + solved - meshed,
-                    "solve_phases": solver.timings()},
+        "seconds": {**seconds, "solve_phases": solver.timings()},
     }
-    return Result(scene, final, state.radiosity.cpu(), state.unshot.cpu(), solver.reflectance.cpu(),
-                  solver.emission.cpu(), stats)

@@ -7,7 +7,8 @@ import torch
 
 from hemirad.geometry.analytic import point_to_polygon
 from hemirad.transport.renderer import HemicubeRenderer
-from hemirad.adaptive.gradient import ReceiverPatches, form_factor_jacobian, interior_form_factors, occlusion_pairs
+from hemirad.adaptive.gradient import ReceiverPatches, form_factor_jacobian, interior_form_factors
+from hemirad.adaptive.shadow_edges import occlusion_pairs
 from hemirad.geometry.mesh import Mesh
 
 Z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
@@ -168,7 +169,7 @@ def test_a_curved_surface_gives_each_element_its_own_plane_id():
 
 
 def test_pairs_touching_some_pixels_are_those_a_full_scan_finds():
-    from hemirad.adaptive.gradient import neighbour_pairs, pairs_touching
+    from hemirad.adaptive.shadow_edges import neighbour_pairs, pairs_touching
 
     R = 16
     a, b, _ = neighbour_pairs(R)
@@ -180,7 +181,7 @@ def test_pairs_touching_some_pixels_are_those_a_full_scan_finds():
 
 
 def test_boundary_pairs_found_by_image_shifts_are_those_a_scan_of_every_pair_finds():
-    from hemirad.adaptive.gradient import boundary_pairs, neighbour_pairs
+    from hemirad.adaptive.shadow_edges import boundary_pairs, neighbour_pairs
 
     R = 16
     a, b, _ = neighbour_pairs(R)
