@@ -8,10 +8,10 @@ from hemirad.output.display import luminance
 from hemirad.core.fastops import flatnonzero
 from hemirad.adaptive.gradient import ShotView
 from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.patterns import CHILDREN
 from hemirad.scene.model import RefineOptions
 from hemirad.geometry.split import SplitRounds
 
-CHILDREN = {"pattern1": 3, "pattern2": 4}
 
 
 class Refiner:

@@ -35,9 +35,10 @@ import yaml
 
 from hemirad.core.device import DEVICE_NAMES, is_device_name
 from hemirad.core.errors import SceneError
+from hemirad.geometry.patterns import PATTERN_CHOICES
 from hemirad.scene.meshing import clean_triangles
-from hemirad.scene.model import (Box, Camera, FaceOverride, Material, MeshFile, Quad, RefineOptions, Room, Scene, SceneObject,
-                    SolverOptions)
+from hemirad.scene.model import (CRITERION_NAMES, Box, Camera, FaceOverride, Material, MeshFile, Quad, RefineOptions,
+                                 Room, Scene, SceneObject, SolverOptions)
 
 #: Refuse scenes whose estimated initial triangle count exceeds this.
 MAX_TRIANGLES = 5_000_000
@@ -65,7 +66,6 @@ _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
                 "interior", "shadow_edges", "view_surface")
-_PATTERNS = ("none", "pattern1", "pattern2")
 
 # What a missing required key should hold, for the error message.
 _REQUIRED_WHAT = {
@@ -615,15 +615,13 @@ class _Reader:
         return v
 
     def read_refine(self, v) -> RefineOptions:
-        from hemirad.adaptive.criteria import CRITERIA  # the registry of criterion names lives with the criteria
-
         m = self.mapping(v, "refine", "a mapping of refinement options")
         self.keys(m, "refine", _REFINE_KEYS)
         opts = RefineOptions()
         if "pattern" in m:
-            opts.pattern = self.choice(m["pattern"], "refine.pattern", _PATTERNS)
+            opts.pattern = self.choice(m["pattern"], "refine.pattern", PATTERN_CHOICES)
         if "criterion" in m:
-            opts.criterion = self.choice(m["criterion"], "refine.criterion", tuple(CRITERIA))
+            opts.criterion = self.choice(m["criterion"], "refine.criterion", CRITERION_NAMES)
         if "threshold" in m:
             t = self.number(m["threshold"], "refine.threshold", "a number > 0")
             if not t > 0:
