@@ -26,6 +26,7 @@ from pathlib import Path
 import torch
 
 from hemirad.core.errors import HemiradInputError
+from hemirad.scene.meshfile import cached_contents
 from hemirad.scene.model import MeshFile, Scene
 
 FORMAT = 1
@@ -55,7 +56,9 @@ def _objects_digest(scene: Scene) -> str:
     for obj in scene.objects:
         d = dataclasses.asdict(obj)
         if isinstance(obj, MeshFile):
-            d["path"] = _file_sha256(obj.path)
+            del d["contents"]  # the arrays read at load; the file is hashed instead, below
+            contents = cached_contents(obj)
+            d["path"] = contents.sha256 if contents is not None else _file_sha256(obj.path)
         described.append({"type": type(obj).__name__, **d})
     return _sha256(json.dumps(described, sort_keys=True, default=str).encode())
 

@@ -85,6 +85,9 @@ class MeshFile:
         (1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
     crease_angle: float = 30.0  # degrees: vertices are not shared across sharper edges
     name: str = "mesh"
+    # the file as the loader read it (hemirad.scene.meshfile.MeshContents), so that meshing
+    # does not parse it again; None: read when meshed
+    contents: object = field(default=None, repr=False, compare=False)
 
 
 SceneObject = Room | Box | Quad | MeshFile
