@@ -24,6 +24,12 @@ from hemirad.adaptive.relabel import descendants, relabel_atlas, relabel_form_fa
 from hemirad.core.runtime import deterministic, keep_freed_memory, torch_threads
 from hemirad.geometry.split import GrowingRows, inherit
 
+#: The version of the numbers a solve produces. Bump it with any change, anywhere (meshing,
+#: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
+#: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
+#: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+ARITHMETIC = 1
+
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
                        reflectance: torch.Tensor, areas: torch.Tensor) -> torch.Tensor:
