@@ -26,8 +26,11 @@ from pathlib import Path
 import torch
 
 from hemirad.core.errors import HemiradInputError
+from hemirad.scene.meshfile import cached_contents
 from hemirad.scene.model import MeshFile, Scene
+from hemirad.transport import solver as solver_module
 
+#: The version of the checkpoint file's layout (what ``write`` stores); bump it when that changes.
 FORMAT = 1
 FILENAME = "checkpoint.pt"
 
@@ -55,7 +58,9 @@ def _objects_digest(scene: Scene) -> str:
     for obj in scene.objects:
         d = dataclasses.asdict(obj)
         if isinstance(obj, MeshFile):
-            d["path"] = _file_sha256(obj.path)
+            del d["contents"]  # the arrays read at load; the file is hashed instead, below
+            contents = cached_contents(obj)
+            d["path"] = contents.sha256 if contents is not None else _file_sha256(obj.path)
         described.append({"type": type(obj).__name__, **d})
     return _sha256(json.dumps(described, sort_keys=True, default=str).encode())
 
@@ -67,13 +72,14 @@ def fingerprint(scene: Scene) -> dict[str, object]:
     resolution and the refine options are kept as values, so a mismatch can say what
     changed. Stopping rules (max_shots, unshot_fraction), the camera and the ambient term
     are left out: a finished run may be continued with more shots, or shown differently.
-    The hemirad version is in because a code change may change the shots.
+    The checkpoint format and the solver's arithmetic version (``transport.solver.ARITHMETIC``)
+    are in, so a checkpoint is not resumed by code that stores it or computes the shots
+    differently; a release that changes neither resumes its predecessor's checkpoints.
     """
-    from hemirad import __version__
-
     materials = [dataclasses.asdict(m) for m in scene.materials]
     return {
-        "hemirad version": __version__,
+        "checkpoint format": FORMAT,
+        "solver arithmetic": solver_module.ARITHMETIC,
         "materials": _sha256(json.dumps(materials, sort_keys=True).encode()),
         "objects": _objects_digest(scene),
         "solver.resolution": scene.solver.resolution,

@@ -9,7 +9,11 @@ import warnings
 from dataclasses import replace
 from pathlib import Path
 
+from hemirad.core.device import DEVICES, DEVICE_NAMES, is_device_name
 from hemirad.core.errors import HemiradInputError, HemiradWarning
+from hemirad.geometry.patterns import PATTERN_CHOICES, describe_patterns
+from hemirad.scene.loader import MAX_TRIANGLES, bundled_scenes, load_scene
+from hemirad.scene.model import CRITERION_NAMES, RefineOptions
 
 
 def _number(text: str, kind=float):
@@ -43,8 +47,6 @@ def _depth(text: str) -> int:
 
 
 def _element_budget(text: str) -> int:
-    from hemirad.scene.loader import MAX_TRIANGLES
-
     value = _positive_int(text)
     if value > MAX_TRIANGLES:
         raise argparse.ArgumentTypeError(f"expected at most {MAX_TRIANGLES:,} elements, got {text}")
@@ -59,8 +61,6 @@ def _resolution(text: str) -> int:
 
 
 def _device(text: str) -> str:
-    from hemirad.core.device import DEVICE_NAMES, is_device_name
-
     if not is_device_name(text):
         raise argparse.ArgumentTypeError(f"expected one of {', '.join(DEVICE_NAMES)}, got {text!r}")
     return text
@@ -93,7 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Solve a scene by progressive-refinement radiosity and write image.png, "
                     "mesh.png, mesh.ply and mesh.glb (per-vertex colour and radiosity) and stats.json.")
     parser.add_argument("scene", help="a scene file (YAML) or the name of a bundled scene "
-                                      "(cornell_box, floating)")
+                                      f"({', '.join(bundled_scenes())})")
     parser.add_argument("-o", "--output", type=Path,
                         help="output folder (default: <scene name>_out in the current folder)")
     parser.add_argument("--shots", type=_positive_int, help="stop after this many shots (solver.max_shots)")
@@ -101,14 +101,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="stop when unshot / emitted power falls below this (solver.unshot_fraction)")
     parser.add_argument("--resolution", type=_resolution, help="hemicube resolution (solver.resolution)")
     parser.add_argument("--device", type=_device,
-                        help="where the solve runs: cpu (the default), cuda, cuda:N (PyTorch on CUDA, hemicubes "
-                             "drawn by the GPU's OpenGL) or auto (cuda when there is one) (solver.device)")
+                        help="where the solve runs (solver.device): " +
+                             "; ".join(f"{name}, {meaning}" for name, meaning in DEVICES.items()))
     refine = parser.add_argument_group("adaptive meshing (override the scene's refine block)")
-    refine.add_argument("--refine", choices=("none", "pattern1", "pattern2"),
-                        help="split pattern: pattern1 (centroid, 1 -> 3), pattern2 (edge midpoints, 1 -> 4)")
-    refine.add_argument("--criterion", choices=("gradient", "receiver", "partial_visibility",
-                                                "neighbor_difference", "uniform"),
-                        help="what decides a split (default gradient, the paper's eq. 7)")
+    refine.add_argument("--refine", choices=PATTERN_CHOICES, help=f"split pattern: {describe_patterns()}")
+    refine.add_argument("--criterion", choices=CRITERION_NAMES,
+                        help=f"what decides a split (default {RefineOptions.criterion}, the paper's eq. 7)")
     refine.add_argument("--threshold", type=_positive_float,
                         help="split when the criterion's radiosity variation (luminance) exceeds this")
     scale = refine.add_mutually_exclusive_group()
@@ -168,7 +166,6 @@ class _Progress:
 def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     """Solve and write as ``args`` say; ``argv`` (the command line) is echoed in the resume hint."""
     from hemirad import checkpoint as checkpoints
-    from hemirad.scene.loader import load_scene
     from hemirad.pipeline import prepare_output_folder, solve
 
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))

@@ -24,7 +24,7 @@ from hemirad.output import export
 from hemirad.output import gltf
 from hemirad.core.errors import HemiradInputError, SceneError
 from hemirad.core.device import select_device
-from hemirad.transport.gl import GLContext
+from hemirad.transport.gl import GLContext, check_image_size
 from hemirad.geometry.mesh import Mesh
 from hemirad.scene.meshing import build_mesh
 from hemirad.output.meshview import pick_surface, surface_view
@@ -160,17 +160,16 @@ def check_gl_limits(scene: Scene, gpu: bool = False) -> None:
     """Refuse, before any work, sizes the OpenGL framebuffers cannot hold: the hemicube atlas
     (R x 3R) and the supersampled camera image. Otherwise the image would fail only after
     the whole solve. ``gpu``: the solve draws with the GPU's context (made here if none is)."""
-    limit = int(GLContext.get(gpu).info.get("GL_MAX_RENDERBUFFER_SIZE", 4096))
     file = str(scene.source) if scene.source else "<scene>"
     r = scene.solver.resolution
-    if 3 * r > limit:
-        raise SceneError(file, "solver.resolution", f"at most {limit // 6 * 2} (the hemicube is drawn into an "
-                         f"R x 3R image, and OpenGL allows {limit} pixels a side here)", r)
+    check_image_size(3 * r, lambda limit: SceneError(
+        file, "solver.resolution", f"at most {limit // 6 * 2} (the hemicube is drawn into an "
+        f"R x 3R image, and OpenGL allows {limit} pixels a side here)", r), gpu)
     cam = scene.camera
-    if max(cam.width, cam.height) * cam.supersample > limit:
-        raise SceneError(file, "camera.supersample", f"a camera size that, times supersample, stays within "
-                         f"OpenGL's {limit} pixels a side", cam.supersample,
-                         f"The camera is {cam.width} x {cam.height}; lower supersample or the size.")
+    check_image_size(max(cam.width, cam.height) * cam.supersample, lambda limit: SceneError(
+        file, "camera.supersample", f"a camera size that, times supersample, stays within "
+        f"OpenGL's {limit} pixels a side", cam.supersample,
+        f"The camera is {cam.width} x {cam.height}; lower supersample or the size."), gpu)
 
 
 def prepare_output_folder(folder) -> Path:

@@ -14,7 +14,9 @@ The hashes are of float64 bits: they are the same on machines of one kind (one C
 one Mesa, one torch), not across kinds. Make the reference with the code before a change,
 then check the code after it on the same machine. ``figures/fingerprints.json`` holds those
 of the release that made it, on the machine ``figures/bench.md`` names. ``--quick`` runs
-small versions (fewer shots, a smaller hemicube) in about a minute.
+small versions (fewer shots, a smaller hemicube) in about a minute. A change that moves
+these hashes on purpose bumps ``hemirad.transport.solver.ARITHMETIC`` (checkpoints of the
+old numbers are then not resumed).
 """
 from __future__ import annotations
 

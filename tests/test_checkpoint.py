@@ -14,6 +14,7 @@ from hemirad import checkpoint as checkpoints
 from hemirad.cli import main
 from hemirad.core.errors import HemiradInputError
 from hemirad.output.export import read_ply_radiosity
+from hemirad.transport import solver as solver_module
 from hemirad.transport.solver import ProgressiveSolver
 
 SMALL_ROOM = Path(__file__).parent / "data" / "small_room.yaml"
@@ -128,6 +129,27 @@ def test_resuming_a_different_run_is_refused(saved, change, says):
     with pytest.raises(HemiradInputError, match="written for a different run") as error:
         hemirad.solve(s, checkpoint=saved, resume=True)
     assert says in str(error.value)
+
+
+@pytest.mark.parametrize("module, constant, key, says", [
+    (solver_module, "ARITHMETIC", "solver arithmetic",
+     "written for a different run (solver arithmetic: {old} there, {new} here)"),
+    (checkpoints, "FORMAT", "checkpoint format", "not a hemirad checkpoint of format {new} (found {old})"),
+], ids=["arithmetic", "format"])
+def test_a_checkpoint_of_another_arithmetic_or_format_is_refused(saved, monkeypatch, module, constant, key, says):
+    # As code whose solves give other numbers, or that stores checkpoints otherwise, would see it.
+    old = getattr(module, constant)
+    assert checkpoints.fingerprint(scene())[key] == old
+    monkeypatch.setattr(module, constant, old + 1)
+    with pytest.raises(HemiradInputError) as error:
+        hemirad.solve(scene(shots=4), checkpoint=saved, resume=True)
+    assert says.format(old=old, new=old + 1) in str(error.value)
+
+
+def test_the_fingerprint_does_not_hold_the_package_version(monkeypatch):
+    before = checkpoints.fingerprint(scene())
+    monkeypatch.setattr(hemirad, "__version__", "99.0.0")
+    assert checkpoints.fingerprint(scene()) == before and "99.0.0" not in str(before)
 
 
 def test_stopping_rules_and_display_may_change_on_resume(saved):

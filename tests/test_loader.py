@@ -7,9 +7,11 @@ from pathlib import Path
 import pytest
 import yaml
 
+from hemirad.core.device import DEVICE_NAMES
 from hemirad.core.errors import HemiradInputError, SceneError
+from hemirad.geometry.patterns import PATTERN_CHOICES
 from hemirad.scene.loader import MAX_TRIANGLES, bundled_scenes, load_scene, parse_scene
-from hemirad.scene.model import Box, MeshFile, Quad, Room, Scene
+from hemirad.scene.model import CRITERION_NAMES, Box, MeshFile, Quad, Room, Scene
 
 DATA = Path(__file__).parent / "data"
 
@@ -244,3 +246,35 @@ def test_unreadable_mesh_file(tmp_path):
 def test_scene_error_is_an_input_error():
     with pytest.raises(HemiradInputError):
         parse_scene(["not", "a", "mapping"], file="inline")
+
+
+# ---------------------------------------------------------------------------------------
+# the vocabularies: one list each, which the loader and the command line both take
+
+
+@pytest.mark.parametrize("key, names", [("pattern", PATTERN_CHOICES), ("criterion", CRITERION_NAMES),
+                                        ("device", DEVICE_NAMES)])
+def test_the_loader_takes_each_vocabulary_and_names_it_when_refusing(key, names):
+    section = "solver" if key == "device" else "refine"
+    for name in names:
+        if name != "cuda:N":
+            scene = parse_scene(edited(lambda d: d.setdefault(section, {}).update({key: name})))
+            assert getattr(getattr(scene, section), key) == name
+    with pytest.raises(SceneError, match=f"{section}.{key}") as error:
+        parse_scene(edited(lambda d: d.setdefault(section, {}).update({key: "no_such_name"})))
+    assert ", ".join(names) in str(error.value)
+
+
+def test_the_command_line_offers_the_same_vocabularies():
+    from hemirad.cli import build_parser
+
+    actions = {a.dest: a for a in build_parser()._actions}
+    assert tuple(actions["refine"].choices) == PATTERN_CHOICES
+    assert tuple(actions["criterion"].choices) == CRITERION_NAMES
+    assert all(name in actions["device"].help for name in DEVICE_NAMES)
+
+
+def test_the_criteria_registry_defines_exactly_the_named_criteria():
+    from hemirad.adaptive.criteria import CRITERIA
+
+    assert tuple(CRITERIA) == CRITERION_NAMES

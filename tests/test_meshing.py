@@ -268,3 +268,30 @@ def test_smooth_patches_follow_the_crease_angle(tmp_path):
     sphere.export(tmp_path / "sphere.ply")
     mesh = build_mesh(scene_of(MeshFile(tmp_path / "sphere.ply", "white", 10.0, name="ball")))
     assert mesh.surface_names == ["ball"] and len(mesh.vertices) == len(v)
+
+
+def test_a_mesh_file_is_parsed_once_per_load(monkeypatch):
+    import hashlib
+
+    import trimesh
+
+    from hemirad import checkpoint
+    from hemirad.scene.meshfile import read_mesh_file
+
+    parsed = []
+    load = trimesh.load
+    monkeypatch.setattr(trimesh, "load", lambda path, **kw: parsed.append(path) or load(path, **kw))
+    scene = load_scene(DATA / "small_room.yaml")
+    build_mesh(scene)
+    build_mesh(scene.with_element_sizes_scaled(0.5))
+    assert parsed == [DATA.absolute() / "tetra.obj"]
+    # The same triangles as a fresh read; the checkpoint hashes the content as read.
+    tetra = next(o for o in scene.objects if isinstance(o, MeshFile))
+    fresh = read_mesh_file(tetra.path)
+    assert np.array_equal(tetra.contents.vertices, fresh.vertices) and np.array_equal(tetra.contents.faces, fresh.faces)
+    assert tetra.contents.sha256 == hashlib.sha256(tetra.path.read_bytes()).hexdigest()
+    assert checkpoint.fingerprint(scene) == checkpoint.fingerprint(load_scene(DATA / "small_room.yaml"))
+    # A MeshFile made by hand (no contents) is read when meshed.
+    by_hand, before = MeshFile(tetra.path, "white", 0.5), len(parsed)
+    assert by_hand.contents is None and len(build_mesh(scene_of(by_hand)).triangles) > 0
+    assert len(parsed) == before + 1

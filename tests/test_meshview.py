@@ -295,3 +295,20 @@ def test_pick_surface():
 
     mesh.surface_names = ["a", "b", "c", "d"]
     assert pick_surface(mesh, None) == 1  # no floor: the largest surface
+
+
+def test_views_over_the_opengl_size_limit_are_refused(monkeypatch):
+    # The one limit both pictures check (GLContext.max_image_size), lowered to 48 pixels a side.
+    from hemirad.transport.gl import GLContext
+
+    monkeypatch.setattr(GLContext, "max_image_size", classmethod(lambda cls, gpu=False: 48))
+    mesh, colors = _floor_blocks(BLOCKS)
+    with pytest.raises(HemiradInputError, match="view size 64 exceeds the OpenGL framebuffer limit of 48 pixels"):
+        surface_view(mesh, colors, 0, size=64)
+    assert surface_view(mesh, colors, 0, size=48).shape == (24, 48, 3)
+    camera = Camera((1.0, 2.0, 0.5), (1.0, 0.0, 0.5), (0.0, 0.0, -1.0), width=24, height=16, supersample=3)
+    with pytest.raises(HemiradInputError, match="camera size 24 x 16 with supersample 3 exceeds the OpenGL "
+                                                "framebuffer limit of 48 pixels"):
+        render_view(mesh, colors, camera)
+    camera.supersample = 2
+    assert render_view(mesh, colors, camera).shape == (16, 24, 3)

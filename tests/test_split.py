@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.patterns import CHILDREN, PATTERNS
 from hemirad.scene.meshing import grid_quad
 from hemirad.geometry.split import angle_quality, largest_angles, split_triangles
 
@@ -276,3 +277,9 @@ def test_a_leaf_beside_twice_split_neighbours_is_unbalanced():
     assert unbalanced(twice, near).tolist() == []  # only triangles touching ``near`` are examined
     near[0] = True
     assert unbalanced(twice, near).tolist() == [1]
+
+
+@pytest.mark.parametrize("pattern", PATTERNS)
+def test_a_split_makes_the_children_its_pattern_names(pattern):
+    mesh, _ = split_triangles(_triangle(), torch.tensor([True]), pattern)
+    assert mesh.num_elements == CHILDREN[pattern]

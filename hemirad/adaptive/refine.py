@@ -8,11 +8,11 @@ from hemirad.adaptive.shot import refining_shot
 from hemirad.core.colour import luminance
 from hemirad.core.fastops import flatnonzero
 from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.patterns import CHILDREN
 from hemirad.scene.model import RefineOptions
 from hemirad.geometry.split import SplitRounds
 from hemirad.transport.view import HemicubeView
 
-CHILDREN = {"pattern1": 3, "pattern2": 4}
 
 
 class Refiner:

@@ -1,11 +1,7 @@
 """Where a solve's tensor work runs: the CPU, or a CUDA device beside a GPU OpenGL context.
 
-The names a scene (``solver.device``) or the command line (``--device``) may give:
-
-    cpu      the default: torch on the CPU, OpenGL on the first EGL device
-    cuda     torch on the current CUDA device, OpenGL on an NVIDIA EGL device
-    cuda:N   the same on CUDA device N
-    auto     cuda when PyTorch sees a CUDA device, else cpu
+The names a scene (``solver.device``) or the command line (``--device``) may give are
+``DEVICES``' keys, with what each means.
 """
 from __future__ import annotations
 
@@ -17,8 +13,15 @@ import torch
 
 from hemirad.core.errors import HemiradInputError
 
-DEVICE_NAMES = ("cpu", "cuda", "cuda:N", "auto")
-_PATTERN = re.compile(r"^(cpu|auto|cuda(:\d+)?)$")
+DEVICES = {
+    "cpu": "the default: torch on the CPU, OpenGL on the first EGL device",
+    "cuda": "torch on the current CUDA device, OpenGL on an NVIDIA EGL device",
+    "cuda:N": "the same on CUDA device N",
+    "auto": "cuda when PyTorch sees a CUDA device, else cpu",
+}
+DEVICE_NAMES = tuple(DEVICES)
+# "N" in a name stands for a device number
+_PATTERN = re.compile("^(?:" + "|".join(re.escape(n).replace("N", r"\d+") for n in DEVICE_NAMES) + ")$")
 
 
 def is_device_name(name: str) -> bool:

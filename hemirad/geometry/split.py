@@ -22,9 +22,7 @@ import torch
 
 from hemirad.core.fastops import flatnonzero, rows_touching
 from hemirad.geometry.mesh import Mesh
-
-PATTERNS = ("pattern1", "pattern2")
-
+from hemirad.geometry.patterns import CHILDREN, PATTERNS
 
 _KEY_BASE = 1 << 32
 
@@ -249,7 +247,7 @@ class SplitRounds:
         if pattern not in PATTERNS:
             raise ValueError(f"unknown split pattern {pattern!r}; expected one of {', '.join(PATTERNS)}")
         self.before, self.pattern = mesh, pattern
-        self.per_parent = 3 if pattern == "pattern1" else 4
+        self.per_parent = CHILDREN[pattern]
         device = mesh.triangles.device
         new_triangles = room * (self.per_parent - 1)
         new_vertices = room * (1 if pattern == "pattern1" else 3)

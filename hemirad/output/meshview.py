@@ -12,7 +12,7 @@ import torch
 
 from hemirad.output.display import conforming_triangles
 from hemirad.core.errors import HemiradInputError
-from hemirad.transport.gl import GLContext
+from hemirad.transport.gl import GLContext, check_image_size
 from hemirad.geometry.mesh import Mesh
 from hemirad.output.render import _program, orthographic
 
@@ -155,9 +155,8 @@ def surface_view(mesh: Mesh, vertex_colors, surface: int | list[int], size: int 
         width, height = max(1, int(round(size * extent_u / extent_v))), size
 
     ctx = GLContext.get()
-    limit = int(ctx.info.get("GL_MAX_RENDERBUFFER_SIZE", 4096))
-    if max(width, height) > limit:
-        raise HemiradInputError(f"view size {size} exceeds the OpenGL framebuffer limit of {limit} pixels.")
+    check_image_size(max(width, height), lambda limit: HemiradInputError(
+        f"view size {size} exceeds the OpenGL framebuffer limit of {limit} pixels."))
 
     # Depth: the surface's own relief plus a margin; edges move half the margin towards the
     # viewer so they win the depth test on their own surface but stay hidden behind

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from hemirad.core.errors import HemiradInputError
-from hemirad.transport.gl import GLContext
+from hemirad.transport.gl import GLContext, check_image_size
 from hemirad.geometry.mesh import Mesh
 from hemirad.scene.model import Camera
 
@@ -168,11 +168,9 @@ def render_view(mesh: Mesh, vertex_colors, camera: Camera, triangles=None) -> np
         raise HemiradInputError(f"camera width and height must be positive, got {width} x {height}.")
 
     ctx = GLContext.get()
-    limit = int(ctx.info.get("GL_MAX_RENDERBUFFER_SIZE", 4096))
-    if max(width, height) * ss > limit:
-        raise HemiradInputError(
-            f"camera size {width} x {height} with supersample {ss} exceeds the OpenGL "
-            f"framebuffer limit of {limit} pixels; lower camera.supersample or the size.")
+    check_image_size(max(width, height) * ss, lambda limit: HemiradInputError(
+        f"camera size {width} x {height} with supersample {ss} exceeds the OpenGL "
+        f"framebuffer limit of {limit} pixels; lower camera.supersample or the size."))
 
     image = np.zeros((height, width, 3), dtype=np.float32)
     draw = mesh.triangles if triangles is None else torch.as_tensor(triangles, dtype=torch.int64).reshape(-1, 3)

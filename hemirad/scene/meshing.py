@@ -20,6 +20,7 @@ import torch
 
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.mesh import Mesh
+from hemirad.scene.meshfile import MeshFileUnreadable, clean_triangles, contents_of
 from hemirad.scene.model import Box, MeshFile, Quad, Room, Scene
 
 # ceil(length / size) with a little slack, so 0.9 / 0.3 = 3.0000000000000004 gives 3 cells.
@@ -143,57 +144,6 @@ def _quad_surfaces(quad: Quad, label: str, scene: Scene) -> list[_Surface]:
 # imported meshes
 
 
-def read_mesh_file(path) -> tuple[np.ndarray, np.ndarray]:
-    """Read any file trimesh can load as one triangle mesh, unprocessed.
-
-    Returns:
-        vertices: (V, 3) float64; faces: (F, 3) int64.
-    """
-    import trimesh
-
-    try:
-        tm = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many kinds; any of them means an unreadable file
-        raise HemiradInputError(f"could not read the mesh file {path}: {exc}") from exc
-    vertices = np.asarray(getattr(tm, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
-    faces = np.asarray(getattr(tm, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
-    return vertices, faces
-
-
-def clean_triangles(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
-    """Which triangles to keep, and why the others go.
-
-    A triangle goes if a corner is not finite, if its area is zero (below 1e-12 of the
-    squared bounding-box diagonal, which also covers repeated corners), or if it repeats
-    an earlier triangle with the same winding (two coincident elements would fight for
-    the same hemicube pixels).
-
-    Args:
-        vertices: (V, 3); faces: (F, 3) with vertices already merged by position.
-
-    Returns:
-        keep: (F,) bool; dropped: counts by reason.
-    """
-    c = vertices[faces]  # (F, 3, 3)
-    finite = np.isfinite(c).all(axis=(1, 2))
-    used = c[finite].reshape(-1, 3)
-    diag = float(np.linalg.norm(np.ptp(used, axis=0))) if len(used) else 0.0
-    with np.errstate(invalid="ignore", over="ignore"):
-        doubled_area = np.linalg.norm(np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]), axis=1)
-    nonzero = finite & (doubled_area > 2e-12 * diag**2)
-    # the same triangle twice: compare rotations brought to start at the smallest index
-    rolled = np.stack([np.roll(faces, -k, axis=1) for k in range(3)], 1)  # (F, 3, 3)
-    canon = rolled[np.arange(len(faces)), faces.argmin(axis=1)]
-    first = np.zeros(len(faces), dtype=bool)
-    if len(faces):
-        _, index = np.unique(canon, axis=0, return_index=True)
-        first[index] = True
-    keep = nonzero & first
-    dropped = {"non-finite": int((~finite).sum()), "zero-area": int((finite & ~nonzero).sum()),
-               "duplicate": int((nonzero & ~first).sum())}
-    return keep, dropped
-
-
 def smooth_patches(vertices: np.ndarray, faces: np.ndarray, crease_angle: float) -> list[np.ndarray]:
     """Group faces into patches joined across edges no sharper than ``crease_angle`` (degrees).
 
@@ -235,7 +185,11 @@ def _subdivide(vertices: np.ndarray, faces: np.ndarray, element_size: float) -> 
 
 
 def _mesh_file_surfaces(obj: MeshFile, label: str, scene: Scene) -> list[_Surface]:
-    raw_vertices, raw_faces = read_mesh_file(obj.path)
+    try:
+        contents = contents_of(obj)
+    except MeshFileUnreadable as exc:
+        raise HemiradInputError(f"could not read the mesh file {obj.path}: {exc}") from exc
+    raw_vertices, raw_faces = contents.vertices, contents.faces
     if len(raw_faces) == 0:
         raise HemiradInputError(f"{label}: the mesh file {obj.path} holds no triangles")
     if raw_faces.min() < 0 or raw_faces.max() >= len(raw_vertices):

@@ -12,6 +12,13 @@ from pathlib import Path
 
 import torch
 
+from hemirad.geometry.patterns import NO_REFINEMENT
+
+#: The refinement criteria by name: what a scene's ``refine.criterion`` (and ``--criterion``)
+#: may be. Each is defined in ``hemirad.adaptive.criteria.CRITERIA``, whose keys are checked
+#: against these (the loader, a layer below, reads the names from here).
+CRITERION_NAMES = ("gradient", "receiver", "partial_visibility", "neighbor_difference", "uniform")
+
 
 @dataclass
 class Material:
@@ -78,6 +85,9 @@ class MeshFile:
         (1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
     crease_angle: float = 30.0  # degrees: vertices are not shared across sharper edges
     name: str = "mesh"
+    # the file as the loader read it (hemirad.scene.meshfile.MeshContents), so that meshing
+    # does not parse it again; None: read when meshed
+    contents: object = field(default=None, repr=False, compare=False)
 
 
 SceneObject = Room | Box | Quad | MeshFile
@@ -101,15 +111,15 @@ class SolverOptions:
     unshot_fraction: float = 1e-3  # stop when unshot power / emitted power falls below
     resolution: int = 128  # hemicube top face is resolution x resolution pixels
     ambient: bool = True  # add Cohen et al.'s ambient term to the displayed radiosity
-    device: str = "cpu"  # where the torch work runs: cpu, cuda, cuda:N or auto (hemirad.device)
+    device: str = "cpu"  # where the torch work runs: one of hemirad.core.device.DEVICE_NAMES
 
 
 @dataclass
 class RefineOptions:
     """Adaptive meshing during the solve (docs/DESIGN.md §2, §3)."""
 
-    pattern: str = "none"  # none, pattern1 (centroid, 1 -> 3) or pattern2 (midpoints, 1 -> 4)
-    criterion: str = "gradient"  # see hemirad.criteria.CRITERIA
+    pattern: str = NO_REFINEMENT  # or a split pattern: hemirad.geometry.patterns.PATTERN_CHOICES
+    criterion: str = "gradient"  # one of CRITERION_NAMES
     threshold: float = 3e-4  # luminance of radiosity per shot (a length for the uniform criterion)
     relative: bool = True  # threshold as a fraction of the brightest emitter's radiosity
     max_depth: int = 4  # splits of one initial element, at most
@@ -121,7 +131,7 @@ class RefineOptions:
 
     @property
     def enabled(self) -> bool:
-        return self.pattern != "none"
+        return self.pattern != NO_REFINEMENT
 
 
 @dataclass

@@ -4,6 +4,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import threading
+from typing import Callable
 
 import moderngl
 
@@ -61,6 +62,20 @@ class GLContext:
     def is_software(cls) -> bool:
         """Whether the renderer runs on the CPU (Mesa's llvmpipe or softpipe)."""
         return _is_software(cls.renderer_name())
+
+    @classmethod
+    def max_image_size(cls, gpu: bool = False) -> int:
+        """The longest side, in pixels, of an image the context's framebuffers hold
+        (GL_MAX_RENDERBUFFER_SIZE). ``gpu`` as for ``get``."""
+        return int(cls.get(gpu).info.get("GL_MAX_RENDERBUFFER_SIZE", 4096))
+
+
+def check_image_size(side: int, refusal: Callable[[int], Exception], gpu: bool = False) -> None:
+    """Raise ``refusal(limit)`` when an image ``side`` pixels long exceeds what OpenGL's
+    framebuffers hold here (``limit``, ``GLContext.max_image_size``)."""
+    limit = GLContext.max_image_size(gpu)
+    if side > limit:
+        raise refusal(limit)
 
 
 def _is_software(renderer: str) -> bool:

@@ -24,6 +24,12 @@ from hemirad.transport.view import HemicubeView
 # The phases a solve's time is reported in (``ProgressiveSolver.timings``, stats.json).
 PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 
+#: The version of the numbers a solve produces. Bump it with any change, anywhere (meshing,
+#: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
+#: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
+#: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+ARITHMETIC = 1
+
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
                        reflectance: torch.Tensor, areas: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,94 @@
+"""The loader's checks of a scene's camera, solver and refine blocks."""
+from __future__ import annotations
+
+import numpy as np
+
+from hemirad.core.device import DEVICE_NAMES, is_device_name
+from hemirad.geometry.patterns import PATTERN_CHOICES
+from hemirad.scene.keys import Checker
+from hemirad.scene.model import CRITERION_NAMES, Camera, RefineOptions, SolverOptions
+
+#: Refuse scenes whose estimated initial triangle count exceeds this.
+MAX_TRIANGLES = 5_000_000
+
+_CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
+_SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device")
+_REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
+                "interior", "shadow_edges", "view_surface")
+
+
+def read_camera(check: Checker, v) -> Camera:
+    m = check.section(v, "camera", check.required_what["camera"], _CAMERA_KEYS, ("position", "look_at"))
+    position, look_at = check.vec3(m["position"], "camera.position"), check.vec3(m["look_at"], "camera.look_at")
+    up = check.vec3(m["up"], "camera.up") if "up" in m else (0.0, 1.0, 0.0)
+    view = np.subtract(look_at, position)
+    if np.linalg.norm(view) == 0:
+        check.fail("camera.look_at", "a point different from camera.position", list(look_at))
+    if np.linalg.norm(np.cross(view, up)) <= 1e-9 * np.linalg.norm(view) * np.linalg.norm(up):
+        check.fail("camera.up", "a direction not parallel to the viewing direction", list(up))
+    cam = Camera(position, look_at, up)
+    if "fov" in m:
+        cam.fov = check.bounded(m["fov"], "camera.fov", "a vertical field of view in degrees, 0 < fov < 180",
+                                lambda x: 0 < x < 180)
+    for k in ("width", "height"):
+        if k in m:
+            setattr(cam, k, check.integer(m[k], f"camera.{k}", "a whole number of pixels, 1 to 16384", 1, 16384))
+    if "supersample" in m:
+        cam.supersample = check.integer(m["supersample"], "camera.supersample", "a whole number from 1 to 8", 1, 8)
+    if "exposure" in m and m["exposure"] != "auto":
+        cam.exposure = check.bounded(m["exposure"], "camera.exposure", "'auto' or a positive number",
+                                     lambda x: x > 0)
+    return cam
+
+
+def read_solver(check: Checker, v) -> SolverOptions:
+    m = check.section(v, "solver", "a mapping of solver options", _SOLVER_KEYS)
+    opts = SolverOptions()
+    if "max_shots" in m:
+        opts.max_shots = check.integer(m["max_shots"], "solver.max_shots", "a whole number >= 0", 0)
+    if "unshot_fraction" in m:
+        opts.unshot_fraction = check.bounded(m["unshot_fraction"], "solver.unshot_fraction", "a number in [0, 1)",
+                                             lambda x: 0 <= x < 1)
+    if "resolution" in m:
+        r = check.integer(m["resolution"], "solver.resolution", "an even whole number >= 8", 8)
+        if r % 2:
+            check.fail("solver.resolution", "an even whole number >= 8", r,
+                       "The hemicube's side faces are resolution / 2 pixels high.")
+        opts.resolution = r
+    if "ambient" in m:
+        opts.ambient = check.boolean(m["ambient"], "solver.ambient")
+    if "device" in m:
+        if not is_device_name(m["device"]):
+            check.fail("solver.device", "one of " + ", ".join(DEVICE_NAMES), m["device"],
+                       "cuda needs PyTorch with CUDA and an NVIDIA GPU; auto picks it when there is one.")
+        opts.device = m["device"]
+    return opts
+
+
+def read_refine(check: Checker, v) -> RefineOptions:
+    m = check.section(v, "refine", "a mapping of refinement options", _REFINE_KEYS)
+    opts = RefineOptions()
+    if "pattern" in m:
+        opts.pattern = check.choice(m["pattern"], "refine.pattern", PATTERN_CHOICES)
+    if "criterion" in m:
+        opts.criterion = check.choice(m["criterion"], "refine.criterion", CRITERION_NAMES)
+    if "threshold" in m:
+        opts.threshold = check.bounded(m["threshold"], "refine.threshold", "a number > 0", lambda x: x > 0)
+    for key in ("relative", "interior", "shadow_edges"):
+        if key in m:
+            setattr(opts, key, check.boolean(m[key], f"refine.{key}"))
+    if "max_depth" in m:
+        opts.max_depth = check.integer(m["max_depth"], "refine.max_depth", "a whole number from 0 to 16", 0, 16)
+    if "min_area" in m:
+        opts.min_area = check.bounded(m["min_area"], "refine.min_area", "a number >= 0 (scene units squared)",
+                                      lambda x: x >= 0)
+    if "max_elements" in m:
+        opts.max_elements = check.integer(m["max_elements"], "refine.max_elements",
+                                          f"a whole number from 1 to {MAX_TRIANGLES:,}", 1, MAX_TRIANGLES)
+    if "view_surface" in m:
+        if not isinstance(m["view_surface"], str):
+            check.fail("refine.view_surface", "a surface name such as room.floor", m["view_surface"])
+        opts.view_surface = m["view_surface"]
+    if not (opts.interior or opts.shadow_edges):
+        check.fail("refine.interior", "at least one of interior and shadow_edges to be true", False)
+    return opts
