@@ -28,6 +28,9 @@ PATTERNS = ("pattern1", "pattern2")
 
 _KEY_BASE = 1 << 32
 
+# The key under which a mesh's cache holds its ``_midpoint_index``.
+MIDPOINT_INDEX = "midpoint_index"
+
 
 def _edge_keys(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """One int64 key per undirected edge: ``min * 2^32 + max``. Exact for V < 2^31; the
@@ -39,16 +42,16 @@ def _edge_keys(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def _midpoint_index(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
     """The sorted keys of the edges splitting made midpoints on, and those midpoints: (M,) each.
 
-    Cached in the mesh (meshes are immutable); ``split_triangles`` hands its output the
-    index merged with the new midpoints, so a chain of splits never sorts it again.
+    Kept in the mesh's cache (meshes are immutable); ``split_triangles`` hands its output
+    the index merged with the new midpoints, so a chain of splits never sorts it again.
     """
-    cached = mesh.__dict__.get("_midpoint_index")
-    if cached is None:
+    def build() -> tuple[torch.Tensor, torch.Tensor]:
         parents = mesh.edge_parents
         mid_index = flatnonzero(parents[:, 0] >= 0)
         keys, order = torch.sort(_edge_keys(parents[mid_index, 0], parents[mid_index, 1]))
-        cached = mesh.__dict__["_midpoint_index"] = (keys, mid_index[order])
-    return cached
+        return keys, mid_index[order]
+
+    return mesh.cache.get(MIDPOINT_INDEX, build)
 
 
 def _merged_index(index: tuple[torch.Tensor, torch.Tensor], keys: torch.Tensor,
@@ -259,7 +262,7 @@ class SplitRounds:
         self._vertices = GrowingRows(mesh.vertices, new_vertices)
         self._edge_parents = GrowingRows(mesh.edge_parents, new_vertices)
         # the midpoint index, once needed (pattern 2 looks midpoints up; pattern 1 makes none)
-        self._index = mesh.__dict__.get("_midpoint_index")
+        self._index = mesh.cache.get(MIDPOINT_INDEX)
         self._new_midpoints = []  # (keys, midpoints) made by each round, not yet in _index
         self._find = None  # the current mesh's midpoint lookup, once made (a round renews it)
 
@@ -338,12 +341,12 @@ class SplitRounds:
             keys, midpoints = (torch.cat(parts) for parts in zip(*self._new_midpoints))
             self._index, self._new_midpoints = _merged_index(self._index, keys, midpoints), []
         if self._index is not None:
-            mesh.__dict__["_midpoint_index"] = self._index
+            mesh.cache.put(MIDPOINT_INDEX, self._index)
         T = old.num_elements
         replaced = torch.unique(parent[T:])  # a triangle was split if and only if children were appended to it
         mesh.inherit_geometry(old, torch.cat([replaced, torch.arange(T, len(parent), device=parent.device)]))
-        if "plane_ids" in old.__dict__:  # children lie in their parent's plane
-            mesh.__dict__["plane_ids"] = inherit(old.plane_ids, parent)
+        if old.cache.contains("plane_ids"):  # children lie in their parent's plane
+            mesh.cache.put("plane_ids", inherit(old.plane_ids, parent))
         return mesh, parent
 
 
