@@ -52,3 +52,25 @@ def test_equality_is_identity():
     assert mesh == mesh and mesh != _square()
     assert len({mesh, mesh, _square()}) == 2
 
+
+def test_edge_keys_and_unique_edges():
+    from hemirad.geometry.edges import (KEY_BASE, contains, edge_keys, key_ends, search, triangle_edges,
+                                        unique_edge_keys, unique_edges)
+
+    a, b = torch.tensor([3, 0, 5]), torch.tensor([1, 4, 5])
+    keys = edge_keys(a, b)
+    assert torch.equal(keys, edge_keys(b, a))
+    assert keys.tolist() == [1 * KEY_BASE + 3, 0 * KEY_BASE + 4, 5 * KEY_BASE + 5]
+    lo, hi = key_ends(keys)
+    assert lo.tolist() == [1, 0, 5] and hi.tolist() == [3, 4, 5]
+    triangles = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    start, end = triangle_edges(triangles)
+    assert start.tolist() == [0, 1, 2, 0, 2, 3] and end.tolist() == [1, 2, 0, 2, 3, 0]
+    assert unique_edges(triangles).tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [2, 3]]
+    sorted_keys = unique_edge_keys(triangles)
+    assert contains(sorted_keys, edge_keys(torch.tensor([2, 1, 3]), torch.tensor([0, 3, 2]))).tolist() == \
+        [True, False, True]
+    assert contains(sorted_keys[:0], keys).tolist() == [False] * 3
+    values = torch.arange(10, 15)
+    assert search(sorted_keys, values, edge_keys(torch.tensor([3, 1]), torch.tensor([2, 3]))).tolist() == [14, -1]
+    assert search(sorted_keys[:0], values[:0], keys).tolist() == [-1] * 3

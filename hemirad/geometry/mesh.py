@@ -74,7 +74,7 @@ class Mesh:
             what finds the T-vertices that edge splitting leaves on unsplit neighbours.
         cache: the ``DerivedCache`` of what is computed from the above (``corners``,
             ``centroids``, ``areas``, ``normals``, ``plane_ids``, the midpoint index of
-            ``split._midpoint_index``): computed once per mesh, or handed over by the split
+            ``edges.midpoint_index``): computed once per mesh, or handed over by the split
             that made it (``inherit_geometry``, ``cache.put``).
     """
 

@@ -13,6 +13,7 @@ import torch
 from hemirad.output.display import conforming_triangles
 from hemirad.core.errors import HemiradInputError
 from hemirad.transport.gl import GLContext
+from hemirad.geometry.edges import unique_edges
 from hemirad.geometry.mesh import Mesh
 from hemirad.output.render import _program, orthographic
 
@@ -80,14 +81,6 @@ def view_basis(normal: np.ndarray) -> np.ndarray:
     up /= np.linalg.norm(up)
     right = np.cross(up, n)  # right x up = normal: a right-handed eye frame facing -normal
     return np.stack([right, up, n])
-
-
-def _unique_edges(triangles: torch.Tensor) -> np.ndarray:
-    """(E, 2) int32 undirected edges of (T, 3) triangles."""
-    a = triangles.reshape(-1)
-    b = triangles[:, [1, 2, 0]].reshape(-1)
-    pairs = torch.stack([torch.minimum(a, b), torch.maximum(a, b)], dim=1)
-    return torch.unique(pairs, dim=0).numpy().astype(np.int32)
 
 
 def surface_view(mesh: Mesh, vertex_colors, surface: int | list[int], size: int = 512,
@@ -169,7 +162,7 @@ def surface_view(mesh: Mesh, vertex_colors, surface: int | list[int], size: int 
     fill_positions = eye_space.astype(np.float32)
     line_positions = (eye_space + np.array([0.0, 0.0, 0.5 * margin])).astype(np.float32)
     fill_indices = conforming_triangles(part).numpy().astype(np.int32)
-    line_indices = _unique_edges(part.triangles)
+    line_indices = unique_edges(part.triangles).numpy().astype(np.int32)  # (E, 2)
     line_colors = np.broadcast_to(np.asarray(edge_color, dtype=np.float32), colors.shape).copy()
 
     program = _program(ctx)
