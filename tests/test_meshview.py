@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import numpy as np
@@ -183,9 +184,9 @@ def _floor_blocks(colors: dict, surface: int = 0, name: str = "room.floor") -> t
         part = _grid(corners, 10.0, surface=0, names=[name])
         parts.append(part)
         vertex_colors.append(torch.tensor(rgb, dtype=torch.float64).expand(len(part.vertices), 3))
-    mesh = Mesh.concatenate(parts)
-    mesh.surface[:] = surface
-    mesh.surface_names = [f"s{i}" for i in range(surface)] + [name]
+    joined = Mesh.concatenate(parts)
+    mesh = dataclasses.replace(joined, surface=torch.full_like(joined.surface, surface),
+                               surface_names=[f"s{i}" for i in range(surface)] + [name])
     return mesh, torch.cat(vertex_colors)
 
 
@@ -227,8 +228,8 @@ def test_wall_view_is_upright():
     # A wall z = 0 facing +z: x in [0, 1], y in [0, 2]; red below y = 1, green above.
     low = _grid([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], 10.0)
     high = _grid([[0, 1, 0], [1, 1, 0], [1, 2, 0], [0, 2, 0]], 10.0)
-    mesh = Mesh.concatenate([low, high])
-    mesh.surface[:] = 0
+    joined = Mesh.concatenate([low, high])
+    mesh = dataclasses.replace(joined, surface=torch.zeros_like(joined.surface))
     colors = torch.cat([torch.tensor([1.0, 0, 0]).expand(4, 3), torch.tensor([0, 1.0, 0]).expand(4, 3)])
     image = surface_view(mesh, colors, 0, size=40, edges=False)
     assert image.shape == (40, 20, 3)
@@ -279,7 +280,7 @@ def test_pick_surface():
              _grid([[0, 0, 0], [2, 0, 0], [2, 2, 0], [0, 2, 0]], 1.0),  # area 4
              _grid([[0, 0, 0], [2, 0, 0], [2, 1, 0], [0, 1, 0]], 1.0)]  # area 2
     mesh = Mesh.concatenate(parts)
-    mesh.surface_names = ["room.floor", "room.ceiling", "desk.top", "mat.floor"]
+    mesh = dataclasses.replace(mesh, surface_names=["room.floor", "room.ceiling", "desk.top", "mat.floor"])
     assert pick_surface(mesh, "room.ceiling") == 1
     assert pick_surface(mesh, "ceiling") == 1
     assert pick_surface(mesh, "top") == 2
@@ -293,7 +294,7 @@ def test_pick_surface():
     with pytest.raises(HemiradInputError):
         pick_surface(mesh, "oor")  # a suffix is a whole dotted component, not any tail
 
-    mesh.surface_names = ["a", "b", "c", "d"]
+    mesh = dataclasses.replace(mesh, surface_names=["a", "b", "c", "d"])
     assert pick_surface(mesh, None) == 1  # no floor: the largest surface
 
 

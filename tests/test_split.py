@@ -202,17 +202,18 @@ def test_pattern2_keeps_shapes_pattern1_degrades():
 
 @pytest.mark.parametrize("pattern", ["pattern1", "pattern2"])
 def test_midpoint_index_carried_through_splits_is_the_one_built_afresh(pattern):
-    from hemirad.geometry.split import _midpoint_index
+    from hemirad.geometry.edges import MIDPOINT_INDEX, midpoint_index
 
     g = torch.Generator().manual_seed(5)
     mesh = _jittered_grid()
-    _midpoint_index(mesh)  # built once; every split below carries it over
+    midpoint_index(mesh)  # built once; every split below carries it over
     for _ in range(4):
         mesh, _ = split_triangles(mesh, torch.rand(mesh.num_elements, generator=g) < 0.3, pattern)
-    carried = mesh.__dict__["_midpoint_index"]
+    assert mesh.cache.contains(MIDPOINT_INDEX)
+    carried = mesh.cache.get(MIDPOINT_INDEX)
     fresh = Mesh(mesh.vertices, mesh.triangles, mesh.surface, mesh.material, level=mesh.level,
                  edge_parents=mesh.edge_parents)
-    built = _midpoint_index(fresh)
+    built = midpoint_index(fresh)
     assert (len(built[0]) > 0) == (pattern == "pattern2")
     assert torch.equal(carried[0], built[0]) and torch.equal(carried[1], built[1])
 
@@ -229,7 +230,8 @@ def test_geometry_handed_over_by_a_split_is_the_one_computed_afresh(pattern):
         mesh, parent = split_triangles(mesh, torch.rand(mesh.num_elements, generator=g) < 0.3, pattern)
         values_before, values = values, inherit(values, parent)
         assert torch.equal(values, values_before[parent])
-    handed = {k: mesh.__dict__[k] for k in ("centroids", "areas", "normals")}
+    assert all(mesh.cache.contains(k) for k in ("centroids", "areas", "normals"))
+    handed = {k: mesh.cache.get(k) for k in ("centroids", "areas", "normals")}
     fresh = Mesh(mesh.vertices, mesh.triangles, mesh.surface, mesh.material)
     for name, value in handed.items():
         assert torch.equal(value, getattr(fresh, name)), name
@@ -242,11 +244,12 @@ def test_geometry_handed_over_by_a_split_is_the_one_computed_afresh(pattern):
 def test_split_rounds_give_what_a_chain_of_splits_gives(pattern):
     """Rounds write into shared buffers and look midpoints up in an index of their own until
     ``result``: a later round must still reuse the midpoints an earlier one made."""
-    from hemirad.geometry.split import SplitRounds, _midpoint_index
+    from hemirad.geometry.edges import MIDPOINT_INDEX, midpoint_index
+    from hemirad.geometry.split import SplitRounds
 
     g = torch.Generator().manual_seed(11)
     start = _jittered_grid(seed=2)
-    start.normals, start.areas, start.centroids, _midpoint_index(start)  # computed: handed over
+    start.normals, start.areas, start.centroids, midpoint_index(start)  # computed: handed over
     rounds, chained, chained_parent = SplitRounds(start, pattern), start, torch.arange(start.num_elements)
     for _ in range(3):
         selected = torch.rand(rounds.num_elements, generator=g) < 0.3
@@ -257,9 +260,10 @@ def test_split_rounds_give_what_a_chain_of_splits_gives(pattern):
     assert torch.equal(parent, chained_parent)
     for name in ("vertices", "triangles", "surface", "material", "level", "edge_parents"):
         assert torch.equal(getattr(mesh, name), getattr(chained, name)), name
-    for name in ("centroids", "areas", "normals", "_midpoint_index"):
-        ours, theirs = mesh.__dict__[name], chained.__dict__[name]
-        assert all(torch.equal(a, b) for a, b in zip(ours, theirs)) if name == "_midpoint_index" else \
+    for name in ("centroids", "areas", "normals", MIDPOINT_INDEX):
+        assert mesh.cache.contains(name) and chained.cache.contains(name), name
+        ours, theirs = mesh.cache.get(name), chained.cache.get(name)
+        assert all(torch.equal(a, b) for a, b in zip(ours, theirs)) if name == MIDPOINT_INDEX else \
             torch.equal(ours, theirs), name
 
 

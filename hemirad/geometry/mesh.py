@@ -7,16 +7,59 @@ vertices never blends across a crease or between objects.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import cached_property
+from typing import Any, Callable, Hashable
 
 import torch
 
 from hemirad.core.device import as_tensor
 
 
-@dataclass
+class DerivedCache:
+    """Values derived from an immutable object's data, each computed once and then kept.
+
+    The model is trimesh's ``Cache``, without its change tracking: the owner (a ``Mesh``)
+    never changes, so nothing stored here can go stale and nothing is ever dropped. Keys are
+    the names of what is stored (a mesh uses its property names: ``"centroids"``,
+    ``"areas"``, ``"normals"``, ``"plane_ids"``, ...). ``put`` is how a mesh made from
+    another (a split) is handed values already known, so they are not computed again.
+    """
+
+    __slots__ = ("_values",)
+
+    def __init__(self):
+        self._values: dict[Hashable, Any] = {}
+
+    def get(self, key: Hashable, compute: Callable[[], Any] | None = None) -> Any:
+        """The value stored under ``key``; if there is none, ``compute()``, stored under
+        ``key`` and returned (None where no ``compute`` is given)."""
+        try:
+            return self._values[key]
+        except KeyError:
+            return None if compute is None else self.put(key, compute())
+
+    def put(self, key: Hashable, value: Any) -> Any:
+        """Store ``value`` under ``key`` (it must be what ``get``'s compute would give) and
+        return it."""
+        self._values[key] = value
+        return value
+
+    def contains(self, key: Hashable) -> bool:
+        """Whether a value is stored under ``key`` (computed or put)."""
+        return key in self._values
+
+    __contains__ = contains
+
+    def __repr__(self) -> str:
+        return f"DerivedCache({sorted(map(str, self._values))})"
+
+
+@dataclass(frozen=True, eq=False)
 class Mesh:
-    """A triangle mesh with a surface and a material per triangle.
+    """A triangle mesh with a surface and a material per triangle. Immutable: assigning an
+    attribute raises ``dataclasses.FrozenInstanceError``; splitting and ``to`` return new
+    meshes, and ``dataclasses.replace(mesh, surface=...)`` makes a changed copy. (The
+    tensors must not be written in place either: the derived values in ``cache`` rely on
+    it.) Equality is identity: two meshes are never compared tensor by tensor.
 
     Attributes:
         vertices: (V, 3) float64 positions.
@@ -29,6 +72,10 @@ class Mesh:
         edge_parents: (V, 2) int64: for a vertex made at the midpoint of an edge by
             splitting, that edge's two end vertices; -1 for every other vertex. This is
             what finds the T-vertices that edge splitting leaves on unsplit neighbours.
+        cache: the ``DerivedCache`` of what is computed from the above (``corners``,
+            ``centroids``, ``areas``, ``normals``, ``plane_ids``, the midpoint index of
+            ``edges.midpoint_index``): computed once per mesh, or handed over by the split
+            that made it (``inherit_geometry``, ``cache.put``).
     """
 
     vertices: torch.Tensor
@@ -38,19 +85,24 @@ class Mesh:
     surface_names: list[str] = field(default_factory=list)
     level: torch.Tensor | None = None
     edge_parents: torch.Tensor | None = None
+    cache: DerivedCache = field(default_factory=DerivedCache, init=False, repr=False)
 
     def __post_init__(self):
-        self.vertices = as_tensor(self.vertices, dtype=torch.float64).reshape(-1, 3)
-        self.triangles = as_tensor(self.triangles, dtype=torch.int64).reshape(-1, 3)
-        self.surface = as_tensor(self.surface, dtype=torch.int64).reshape(-1)
-        self.material = as_tensor(self.material, dtype=torch.int64).reshape(-1)
+        # The one place the fields are written: normalising what __init__ was given.
+        def settle(name: str, value, dtype: torch.dtype, shape: tuple[int, ...]) -> None:
+            object.__setattr__(self, name, as_tensor(value, dtype=dtype).reshape(shape))
+
+        settle("vertices", self.vertices, torch.float64, (-1, 3))
+        for name, shape in (("triangles", (-1, 3)), ("surface", (-1,)), ("material", (-1,))):
+            settle(name, getattr(self, name), torch.int64, shape)
         n = len(self.triangles)
-        if self.level is None:
-            self.level = torch.zeros(n, dtype=torch.int64, device=self.triangles.device)
-        if self.edge_parents is None:
-            self.edge_parents = torch.full((len(self.vertices), 2), -1, dtype=torch.int64, device=self.vertices.device)
-        self.level = as_tensor(self.level, dtype=torch.int64).reshape(-1)
-        self.edge_parents = as_tensor(self.edge_parents, dtype=torch.int64).reshape(-1, 2)
+        level, parents = self.level, self.edge_parents
+        if level is None:
+            level = torch.zeros(n, dtype=torch.int64, device=self.triangles.device)
+        if parents is None:
+            parents = torch.full((len(self.vertices), 2), -1, dtype=torch.int64, device=self.vertices.device)
+        settle("level", level, torch.int64, (-1,))
+        settle("edge_parents", parents, torch.int64, (-1, 2))
         if len(self.surface) != n or len(self.material) != n or len(self.level) != n:
             raise ValueError("surface, material and level need one entry per triangle")
         if len(self.edge_parents) != len(self.vertices):
@@ -60,31 +112,31 @@ class Mesh:
     def num_elements(self) -> int:
         return len(self.triangles)
 
-    # Meshes are never modified in place (splitting returns a new one), so the derived
-    # geometry below is computed once per mesh (or handed over by ``inherit_geometry``).
-    @cached_property
+    # The derived geometry below is computed once per mesh and kept in ``cache`` (or handed
+    # over by ``inherit_geometry``).
+    @property
     def corners(self) -> torch.Tensor:
-        """(T, 3, 3) the three vertex positions of every triangle."""
-        return self.vertices[self.triangles]
+        """(T, 3, 3) float64 the three vertex positions of every triangle."""
+        return self.cache.get("corners", lambda: self.vertices[self.triangles])
 
-    @cached_property
+    @property
     def centroids(self) -> torch.Tensor:
-        """(T, 3)"""
-        return _centroids(self.vertices, self.triangles)
+        """(T, 3) float64"""
+        return self.cache.get("centroids", lambda: _centroids(self.vertices, self.triangles))
 
-    @cached_property
+    @property
     def _cross(self) -> torch.Tensor:
-        return _cross(self.corners)
+        return self.cache.get("cross", lambda: _cross(self.corners))
 
-    @cached_property
+    @property
     def areas(self) -> torch.Tensor:
-        """(T,)"""
-        return _area(self._cross)
+        """(T,) float64"""
+        return self.cache.get("areas", lambda: _area(self._cross))
 
-    @cached_property
+    @property
     def normals(self) -> torch.Tensor:
-        """(T, 3) unit normals."""
-        return _unit(self._cross)
+        """(T, 3) float64 unit normals."""
+        return self.cache.get("normals", lambda: _unit(self._cross))
 
     def corners_of(self, index) -> torch.Tensor:
         """(..., 3, 3) the vertex positions of the triangles ``index`` (an int or an (R,)
@@ -107,7 +159,7 @@ class Mesh:
             old: the mesh this one was made from (its vertices are a prefix of this one's).
             rows: (K,) int64 indices into this mesh.
         """
-        names = [name for name in self._HANDED_OVER if name in old.__dict__]
+        names = [name for name in self._HANDED_OVER if old.cache.contains(name)]
         if not names:
             return
         corners = self.corners_of(rows)
@@ -115,16 +167,19 @@ class Mesh:
         fresh = {"centroids": lambda: (corners[:, 0] + corners[:, 1] + corners[:, 2]) / 3.0,
                  "areas": lambda: _area(cross), "normals": lambda: _unit(cross)}
         for name in names:
-            before = old.__dict__[name]
+            before = old.cache.get(name)
             merged = torch.empty((self.num_elements, *before.shape[1:]), dtype=before.dtype, device=before.device)
             merged[:len(before)] = before
-            self.__dict__[name] = merged.index_copy_(0, rows, fresh[name]())
+            self.cache.put(name, merged.index_copy_(0, rows, fresh[name]()))
 
-    @cached_property
+    @property
     def plane_ids(self) -> torch.Tensor:
         """(T,) int64: the elements of one planar surface share an id; an element of a curved
         surface has one of its own. (Elements with different ids may still be coplanar.)
         Split meshes inherit their parent's ids, children lying in their parent's plane."""
+        return self.cache.get("plane_ids", self._plane_ids)
+
+    def _plane_ids(self) -> torch.Tensor:
         normals, T = self.normals, self.num_elements
         offsets = (normals * self.centroids).sum(1, keepdim=True)
         planes = torch.cat([normals, offsets / max(float(self.vertices.abs().max()), 1e-30)], dim=1)  # (T, 4)

@@ -9,7 +9,7 @@ quality never degrades, at the price of T-vertices on unsplit neighbours (see
 ``display.conforming_vertex_values`` and ``display.conforming_triangles``). Midpoints are
 shared: two triangles split in the same call get one vertex on their common edge, and a
 triangle split later reuses the vertex its neighbour made earlier, found through
-``Mesh.edge_parents``.
+``Mesh.edge_parents`` (``edges.midpoint_lookup``).
 
 Everything here is pure and vectorised over elements: it returns a new Mesh and never
 modifies its input.
@@ -21,83 +21,13 @@ import math
 import torch
 
 from hemirad.core.fastops import flatnonzero, rows_touching
+from hemirad.geometry.edges import (MIDPOINT_INDEX, MidpointFinder, edge_keys, key_ends, lookup, merged_index,
+                                    midpoint_index, midpoint_keys, midpoint_lookup, search, triangle_edges)
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patterns import CHILDREN, PATTERNS
 
-_KEY_BASE = 1 << 32
-
-
-def _edge_keys(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """One int64 key per undirected edge: ``min * 2^32 + max``. Exact for V < 2^31; the
-    same key in every mesh, so an index of keys carries over from a mesh to its split."""
-    lo, hi = torch.minimum(a, b), torch.maximum(a, b)
-    return lo * _KEY_BASE + hi
-
-
-def _midpoint_index(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
-    """The sorted keys of the edges splitting made midpoints on, and those midpoints: (M,) each.
-
-    Cached in the mesh (meshes are immutable); ``split_triangles`` hands its output the
-    index merged with the new midpoints, so a chain of splits never sorts it again.
-    """
-    cached = mesh.__dict__.get("_midpoint_index")
-    if cached is None:
-        parents = mesh.edge_parents
-        mid_index = flatnonzero(parents[:, 0] >= 0)
-        keys, order = torch.sort(_edge_keys(parents[mid_index, 0], parents[mid_index, 1]))
-        cached = mesh.__dict__["_midpoint_index"] = (keys, mid_index[order])
-    return cached
-
-
-def _merged_index(index: tuple[torch.Tensor, torch.Tensor], keys: torch.Tensor,
-                  midpoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``_midpoint_index`` with the (k,) new ``midpoints`` on the edges of ``keys`` added
-    (no key is in it yet: an edge is split once)."""
-    old_keys, old_mid = index
-    M, device = len(old_keys), keys.device
-    keys, order = torch.sort(keys)
-    slot = torch.searchsorted(old_keys, keys)  # (k,) the old keys before each new one
-    new_at = slot + torch.arange(len(keys), device=device)  # its place in the merged list
-    # each old key moves up by the number of new keys before it
-    moved_by = torch.zeros(M + 1, dtype=torch.int64, device=device).index_add_(0, slot, torch.ones_like(slot))
-    old_at = torch.arange(M, device=device) + moved_by.cumsum(0)[:M]
-    merged = []
-    for old, new in ((old_keys, keys), (old_mid, midpoints.index_select(0, order))):
-        out = torch.empty(M + len(keys), dtype=torch.int64, device=device)
-        merged.append(out.index_copy_(0, old_at, old).index_copy_(0, new_at, new))
-    return merged[0], merged[1]
-
-
-def midpoint_lookup(mesh: Mesh):
-    """A vectorised map from undirected edges to the midpoint vertex splitting made on them.
-
-    Returns:
-        A function ``find(a, b) -> (N,) int64`` taking two (N,) int64 tensors of vertex
-        indices (in either order) and giving, for each pair, the vertex whose
-        ``edge_parents`` is that pair, or -1 where the edge has never been split.
-    """
-    return _lookup(*_midpoint_index(mesh))
-
-
-def _lookup(keys: torch.Tensor, mid_index: torch.Tensor):
-    """``midpoint_lookup`` over an index of sorted edge keys and their midpoints."""
-
-    def find(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        return _search(keys, mid_index, _edge_keys(a, b))
-
-    return find
-
-
-def _search(keys: torch.Tensor, mid_index: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
-    """(N,) the midpoints of the (N,) edge keys ``query`` in a sorted index, -1 where absent."""
-    if len(keys) == 0:
-        return torch.full_like(query, -1)
-    pos = torch.searchsorted(keys, query).clamp_max(len(keys) - 1)
-    return torch.where(keys.index_select(0, pos) == query, mid_index.index_select(0, pos), -1)
-
-
 def _split_pattern1(vertices: torch.Tensor, triangles: torch.Tensor, chosen: torch.Tensor,
-                    find=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                    find: MidpointFinder | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Centroid split of the triangles ``chosen`` (n,) -> new vertices (n, 3), their
     edge_parents (n, 2) and the children (3n, 3), grouped by parent."""
     tri = triangles[chosen]  # (n, 3)
@@ -118,23 +48,18 @@ def _split_pattern1(vertices: torch.Tensor, triangles: torch.Tensor, chosen: tor
 
 
 def _split_pattern2(vertices: torch.Tensor, triangles: torch.Tensor, chosen: torch.Tensor,
-                    find) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                    find: MidpointFinder) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Midpoint split of the triangles ``chosen`` (n,) -> new vertices (k, 3), their
     edge_parents (k, 2) and the children (4n, 3), grouped by parent; ``find`` is the
     mesh's ``midpoint_lookup``."""
     num_vertices = len(vertices)
     tri = triangles[chosen]  # (n, 3)
     n = len(tri)
-    # Edge e of a triangle runs from corner e to corner e + 1: (v0 v1), (v1 v2), (v2 v0).
-    start = tri.reshape(-1)  # (3n,)
-    end = tri[:, [1, 2, 0]].reshape(-1)
-    lo, hi = torch.minimum(start, end), torch.maximum(start, end)
-
     # One entry per distinct edge among the chosen triangles: an edge shared by two chosen
     # triangles gets a single midpoint. torch.unique sorts, so new vertices come out in a
     # deterministic order (by their sorted end vertices).
-    unique_keys, inverse = torch.unique(_edge_keys(lo, hi), sorted=True, return_inverse=True)
-    unique_lo, unique_hi = unique_keys // _KEY_BASE, unique_keys % _KEY_BASE
+    unique_keys, inverse = torch.unique(edge_keys(*triangle_edges(tri)), sorted=True, return_inverse=True)
+    unique_lo, unique_hi = key_ends(unique_keys)
 
     # Reuse a midpoint an earlier split made on the same edge (the neighbour was split
     # before); only the rest get new vertices.
@@ -257,7 +182,7 @@ class SplitRounds:
         self._vertices = GrowingRows(mesh.vertices, new_vertices)
         self._edge_parents = GrowingRows(mesh.edge_parents, new_vertices)
         # the midpoint index, once needed (pattern 2 looks midpoints up; pattern 1 makes none)
-        self._index = mesh.__dict__.get("_midpoint_index")
+        self._index = mesh.cache.get(MIDPOINT_INDEX)
         self._new_midpoints = []  # (keys, midpoints) made by each round, not yet in _index
         self._find = None  # the current mesh's midpoint lookup, once made (a round renews it)
 
@@ -274,25 +199,25 @@ class SplitRounds:
         """(T, 3) the current triangles (a view: the next round changes it)."""
         return self._triangles.values
 
-    def midpoint_lookup(self):
+    def midpoint_lookup(self) -> MidpointFinder:
         """``midpoint_lookup`` of the current mesh (made once per round: a round's grading
         check and the next round's split share it)."""
         if self._find is None:
             self._find = self._make_lookup()
         return self._find
 
-    def _make_lookup(self):
+    def _make_lookup(self) -> MidpointFinder:
         if self._index is None:
-            self._index = _midpoint_index(self.before)
+            self._index = midpoint_index(self.before)
         if not self._new_midpoints:
-            return _lookup(*self._index)
+            return lookup(*self._index)
         keys, order = torch.sort(torch.cat([keys for keys, _ in self._new_midpoints]))
         new = keys, torch.cat([mid for _, mid in self._new_midpoints]).index_select(0, order)
 
         def find(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # an edge is in one index or neither
-            query = _edge_keys(a, b)
-            old = _search(*self._index, query)
-            return torch.where(old >= 0, old, _search(*new, query))
+            query = edge_keys(a, b)
+            old = search(*self._index, query)
+            return torch.where(old >= 0, old, search(*new, query))
 
         return find
 
@@ -311,11 +236,11 @@ class SplitRounds:
         self._parent.append(self._parent.values.index_select(0, chosen).repeat_interleave(others))
         self._vertices.append(new_vertices.to(self._vertices.buffer.dtype))
         self._edge_parents.append(new_parents)
-        new_midpoints = flatnonzero(new_parents[:, 0] >= 0)
-        if self._index is not None and len(new_midpoints):
-            self._new_midpoints.append(
-                (_edge_keys(new_parents[new_midpoints, 0], new_parents[new_midpoints, 1]), V + new_midpoints))
-            self._find = None
+        if self._index is not None:  # else the index is built from the result's edge_parents
+            keys, midpoints = midpoint_keys(new_parents, first=V)
+            if len(keys):
+                self._new_midpoints.append((keys, midpoints))
+                self._find = None
 
     def unbalanced(self, near: torch.Tensor | None = None) -> torch.Tensor:
         """``unbalanced`` of the current mesh; ``near`` (V,) over its vertices."""
@@ -334,14 +259,14 @@ class SplitRounds:
                     edge_parents=self._edge_parents.values)
         if self._new_midpoints:
             keys, midpoints = (torch.cat(parts) for parts in zip(*self._new_midpoints))
-            self._index, self._new_midpoints = _merged_index(self._index, keys, midpoints), []
+            self._index, self._new_midpoints = merged_index(self._index, keys, midpoints), []
         if self._index is not None:
-            mesh.__dict__["_midpoint_index"] = self._index
+            mesh.cache.put(MIDPOINT_INDEX, self._index)
         T = old.num_elements
         replaced = torch.unique(parent[T:])  # a triangle was split if and only if children were appended to it
         mesh.inherit_geometry(old, torch.cat([replaced, torch.arange(T, len(parent), device=parent.device)]))
-        if "plane_ids" in old.__dict__:  # children lie in their parent's plane
-            mesh.__dict__["plane_ids"] = inherit(old.plane_ids, parent)
+        if old.cache.contains("plane_ids"):  # children lie in their parent's plane
+            mesh.cache.put("plane_ids", inherit(old.plane_ids, parent))
         return mesh, parent
 
 
@@ -379,8 +304,7 @@ def _unbalanced(all_triangles: torch.Tensor, find, near: torch.Tensor | None) ->
     else:
         candidates = rows_touching(all_triangles, near)
         triangles = all_triangles.index_select(0, candidates)
-    a = triangles.reshape(-1)
-    b = torch.stack([triangles[:, 1], triangles[:, 2], triangles[:, 0]], dim=1).reshape(-1)
+    a, b = triangle_edges(triangles)
     m = find(a, b)
     has = m >= 0
     m_safe = torch.where(has, m, a)

@@ -20,7 +20,7 @@ import torch
 
 from hemirad.core.colour import luminance
 from hemirad.geometry.mesh import Mesh
-from hemirad.geometry.split import midpoint_lookup
+from hemirad.geometry.edges import contains, edge_keys, midpoint_lookup, triangle_edges, unique_edge_keys
 
 # Linear display value that the mean scene luminance is mapped to by automatic exposure.
 MIDDLE_GREY = 0.18
@@ -134,20 +134,6 @@ def to_srgb8(linear, exposure: float) -> np.ndarray:
 # T-vertices
 
 
-def _edge_set(triangles: torch.Tensor, num_vertices: int) -> torch.Tensor:
-    """Sorted unique int64 keys ``min * V + max`` of the undirected edges of (T, 3) triangles."""
-    a = triangles.reshape(-1)
-    b = triangles[:, [1, 2, 0]].reshape(-1)
-    return torch.unique(torch.minimum(a, b) * num_vertices + torch.maximum(a, b))
-
-
-def _contains(sorted_keys: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
-    if len(sorted_keys) == 0:
-        return torch.zeros(query.shape, dtype=torch.bool)
-    pos = torch.searchsorted(sorted_keys, query).clamp_max(len(sorted_keys) - 1)
-    return sorted_keys[pos] == query
-
-
 def _t_vertex_depth(mesh: Mesh) -> torch.Tensor:
     """(V,) int64: 0 for a vertex that is not a T-vertex; otherwise 1 + the larger depth of
     the two ends of its edge, so the ends of a depth-d T-vertex all have depth < d.
@@ -165,8 +151,7 @@ def _t_vertex_depth(mesh: Mesh) -> torch.Tensor:
     if len(mids) == 0 or mesh.num_elements == 0:
         return depth
     a, b = parents[mids, 0], parents[mids, 1]
-    lo, hi = torch.minimum(a, b), torch.maximum(a, b)
-    direct = _contains(_edge_set(mesh.triangles, num_vertices), lo * num_vertices + hi)
+    direct = contains(unique_edge_keys(mesh.triangles), edge_keys(a, b))
     # (a, b) is half of a's own parent edge when b is one of a's edge_parents.
     half_of_a = (parents[a] == b[:, None]).any(dim=1)
     half_of_b = (parents[b] == a[:, None]).any(dim=1)
@@ -235,8 +220,7 @@ def _edge_points(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
     tri = mesh.triangles
     find = midpoint_lookup(mesh)
-    start = tri.reshape(-1)
-    end = tri[:, [1, 2, 0]].reshape(-1)
+    start, end = triangle_edges(tri)
     edge_id = torch.arange(len(start), dtype=torch.int64)
     mid = find(start, end)
     hit = mid >= 0

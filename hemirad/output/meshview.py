@@ -6,12 +6,15 @@ surface's bounding rectangle, so elements keep their true shapes and relative si
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import moderngl
 import numpy as np
 import torch
 
 from hemirad.output.display import conforming_triangles
 from hemirad.core.errors import HemiradInputError
+from hemirad.geometry.edges import unique_edges
 from hemirad.transport.gl import GLContext, check_image_size
 from hemirad.geometry.mesh import Mesh
 from hemirad.output.render import _program, orthographic
@@ -82,14 +85,6 @@ def view_basis(normal: np.ndarray) -> np.ndarray:
     return np.stack([right, up, n])
 
 
-def _unique_edges(triangles: torch.Tensor) -> np.ndarray:
-    """(E, 2) int32 undirected edges of (T, 3) triangles."""
-    a = triangles.reshape(-1)
-    b = triangles[:, [1, 2, 0]].reshape(-1)
-    pairs = torch.stack([torch.minimum(a, b), torch.maximum(a, b)], dim=1)
-    return torch.unique(pairs, dim=0).numpy().astype(np.int32)
-
-
 def surface_view(mesh: Mesh, vertex_colors, surface: int | list[int], size: int = 512,
                  edges: bool = True, edge_color=(0.0, 0.0, 0.0),
                  background=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -126,25 +121,59 @@ def surface_view(mesh: Mesh, vertex_colors, surface: int | list[int], size: int 
     if size < 1:
         raise HemiradInputError(f"the view size must be a positive number of pixels, got {size}.")
     surfaces = [int(surface)] if isinstance(surface, (int, np.integer)) else [int(s) for s in surface]
+    part = _chosen_part(mesh, surfaces)
+    eye_space, lo, hi, width, height = _eye_frame(mesh, part, surfaces, size)
+    ctx = GLContext.get()
+    check_image_size(max(width, height), lambda limit: HemiradInputError(
+        f"view size {size} exceeds the OpenGL framebuffer limit of {limit} pixels."))
+
+    # Depth: the surface's own relief plus a margin; edges move half the margin towards the
+    # viewer so they win the depth test on their own surface but stay hidden behind
+    # nearer parts of a curved one.
+    margin = (hi[2] - lo[2]) + 1e-3 * max(hi[0] - lo[0], hi[1] - lo[1])
+    projection = orthographic(lo[0], hi[0], lo[1], hi[1], -(hi[2] + 2 * margin), -(lo[2] - 2 * margin))
+    shrink = np.diag([1.0 - 1.0 / width, 1.0 - 1.0 / height, 1.0, 1.0])
+    fill = _Pass(eye_space.astype(np.float32), colors, conforming_triangles(part).numpy().astype(np.int32),
+                 projection)
+    line_indices = unique_edges(part.triangles).numpy().astype(np.int32)  # (E, 2)
+    lines = _Pass((eye_space + np.array([0.0, 0.0, 0.5 * margin])).astype(np.float32),
+                  np.broadcast_to(np.asarray(edge_color, dtype=np.float32), colors.shape).copy(),
+                  line_indices, shrink @ projection) if edges and len(line_indices) else None
+    raw = _draw(ctx, width, height, background, fill, lines)
+    # glReadPixels returns the bottom row first.
+    image = np.frombuffer(raw, dtype=np.float32).reshape(height, width, 4)[::-1, :, :3]
+    return np.ascontiguousarray(image)
+
+
+def _chosen_part(mesh: Mesh, surfaces: list[int]) -> Mesh:
+    """The triangles of the ``surfaces`` as a mesh of their own over all of ``mesh``'s
+    vertices, so display triangles index the same vertex array and colours."""
     chosen = torch.isin(mesh.surface, torch.tensor(surfaces, dtype=torch.int64))
     if not bool(chosen.any()):
         raise HemiradInputError(f"surface {surfaces} has no elements to show.")
-
-    # The chosen part as a mesh of its own over the same vertices, so display triangles
-    # index the same vertex array and colours.
-    part = Mesh(mesh.vertices, mesh.triangles[chosen], mesh.surface[chosen], mesh.material[chosen],
+    return Mesh(mesh.vertices, mesh.triangles[chosen], mesh.surface[chosen], mesh.material[chosen],
                 list(mesh.surface_names), mesh.level[chosen], mesh.edge_parents)
+
+
+def _eye_frame(mesh: Mesh, part: Mesh, surfaces: list[int], size: int):
+    """Where ``part`` is seen straight on along its area-weighted mean normal.
+
+    Returns:
+        eye_space: (V, 3) float64 every vertex of ``mesh`` in the view's frame (right, up,
+            towards the viewer), relative to the part's centre.
+        lo, hi: (3,) float64 the corners of the part's bounding box in that frame.
+        width, height: the image size in pixels, the longer side ``size``.
+    """
     normal_sum = torch.linalg.cross(part.corners[:, 1] - part.corners[:, 0],
                                     part.corners[:, 2] - part.corners[:, 0]).sum(dim=0).numpy()
     if not np.linalg.norm(normal_sum) > 0:
         raise HemiradInputError(f"surface {surfaces} has no area facing any direction; it cannot be shown straight on.")
     basis = view_basis(normal_sum)
-
     used = torch.unique(part.triangles).numpy()
     world = mesh.vertices.numpy()
     center = world[used].mean(axis=0)
     # float64 until the upload, relative to the surface's centre (precision far from the origin).
-    eye_space = (world - center) @ basis.T  # (V, 3): right, up, towards the viewer
+    eye_space = (world - center) @ basis.T
     lo, hi = eye_space[used].min(axis=0), eye_space[used].max(axis=0)
     extent_u, extent_v = hi[0] - lo[0], hi[1] - lo[1]
     if not (extent_u > 0 and extent_v > 0):
@@ -153,24 +182,21 @@ def surface_view(mesh: Mesh, vertex_colors, surface: int | list[int], size: int 
         width, height = size, max(1, int(round(size * extent_v / extent_u)))
     else:
         width, height = max(1, int(round(size * extent_u / extent_v))), size
+    return eye_space, lo, hi, width, height
 
-    ctx = GLContext.get()
-    check_image_size(max(width, height), lambda limit: HemiradInputError(
-        f"view size {size} exceeds the OpenGL framebuffer limit of {limit} pixels."))
 
-    # Depth: the surface's own relief plus a margin; edges move half the margin towards the
-    # viewer so they win the depth test on their own surface but stay hidden behind
-    # nearer parts of a curved one.
-    margin = (hi[2] - lo[2]) + 1e-3 * max(extent_u, extent_v)
-    projection = orthographic(lo[0], hi[0], lo[1], hi[1], -(hi[2] + 2 * margin), -(lo[2] - 2 * margin))
-    shrink = np.diag([1.0 - 1.0 / width, 1.0 - 1.0 / height, 1.0, 1.0])
-    line_projection = shrink @ projection
-    fill_positions = eye_space.astype(np.float32)
-    line_positions = (eye_space + np.array([0.0, 0.0, 0.5 * margin])).astype(np.float32)
-    fill_indices = conforming_triangles(part).numpy().astype(np.int32)
-    line_indices = _unique_edges(part.triangles)
-    line_colors = np.broadcast_to(np.asarray(edge_color, dtype=np.float32), colors.shape).copy()
+class _Pass(NamedTuple):
+    """One draw of ``_draw``: (V, 3) float32 eye-space positions and linear colours, int32
+    indices ((F, 3) triangles or (E, 2) lines) and the (4, 4) clip-from-eye matrix."""
+    positions: np.ndarray
+    colors: np.ndarray
+    indices: np.ndarray
+    clip_from_eye: np.ndarray
 
+
+def _draw(ctx: moderngl.Context, width: int, height: int, background, fill: _Pass, lines: _Pass | None) -> bytes:
+    """The fill triangles, then (unless None) the lines over them, into a fresh
+    ``width`` x ``height`` float RGBA framebuffer; its pixels, bottom row first."""
     program = _program(ctx)
     resources = []
 
@@ -178,43 +204,36 @@ def surface_view(mesh: Mesh, vertex_colors, surface: int | list[int], size: int 
         resources.append(resource)
         return resource
 
+    def vertex_array(draw: _Pass):
+        return keep(ctx.vertex_array(
+            program,
+            [(keep(ctx.buffer(draw.positions.tobytes())), "3f", "in_position"),
+             (keep(ctx.buffer(draw.colors.tobytes())), "3f", "in_color")],
+            index_buffer=keep(ctx.buffer(draw.indices.tobytes())), index_element_size=4))
+
     try:
         color_rb = keep(ctx.renderbuffer((width, height), components=4, dtype="f4"))
         depth_rb = keep(ctx.depth_renderbuffer((width, height)))
         fbo = keep(ctx.framebuffer(color_attachments=[color_rb], depth_attachment=depth_rb))
-        fill_vao = keep(ctx.vertex_array(
-            program,
-            [(keep(ctx.buffer(fill_positions.tobytes())), "3f", "in_position"),
-             (keep(ctx.buffer(colors.tobytes())), "3f", "in_color")],
-            index_buffer=keep(ctx.buffer(fill_indices.tobytes())), index_element_size=4))
-        line_vao = keep(ctx.vertex_array(
-            program,
-            [(keep(ctx.buffer(line_positions.tobytes())), "3f", "in_position"),
-             (keep(ctx.buffer(line_colors.tobytes())), "3f", "in_color")],
-            index_buffer=keep(ctx.buffer(line_indices.tobytes())), index_element_size=4))
         # The scope restores framebuffer and enable flags for the context's other users.
-        scope = keep(ctx.scope(fbo, enable_only=moderngl.DEPTH_TEST))
-        with scope:
+        with keep(ctx.scope(fbo, enable_only=moderngl.DEPTH_TEST)):
             fbo.viewport = (0, 0, width, height)
             fbo.clear(*(float(c) for c in background), 1.0, depth=1.0)
             ctx.depth_func = "<"
-            program["clip_from_eye"].write(projection.T.astype(np.float32).tobytes())
-            fill_vao.render(moderngl.TRIANGLES)
-            if edges and len(line_indices):
+            program["clip_from_eye"].write(fill.clip_from_eye.T.astype(np.float32).tobytes())
+            vertex_array(fill).render(moderngl.TRIANGLES)
+            if lines is not None:
                 ctx.depth_func = "<="
                 ctx.line_width = 1.0
-                program["clip_from_eye"].write(line_projection.T.astype(np.float32).tobytes())
+                program["clip_from_eye"].write(lines.clip_from_eye.T.astype(np.float32).tobytes())
+                line_vao = vertex_array(lines)
                 line_vao.render(moderngl.LINES)
                 # GL lines are half-open (the last pixel is left for the next segment), which
                 # leaves gaps at the outline's corners; the end points as 1-pixel points close them.
                 ctx.point_size = 1.0
                 line_vao.render(moderngl.POINTS)
-            raw = fbo.read(components=4, dtype="f4")
+            return fbo.read(components=4, dtype="f4")
     finally:
         ctx.depth_func = "<"  # the GL default, which the other passes rely on
         for resource in reversed(resources):
             resource.release()
-
-    # glReadPixels returns the bottom row first.
-    image = np.frombuffer(raw, dtype=np.float32).reshape(height, width, 4)[::-1, :, :3]
-    return np.ascontiguousarray(image)
