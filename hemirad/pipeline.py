@@ -19,20 +19,18 @@ import numpy as np
 import torch
 
 from hemirad import checkpoint as checkpoints
-from hemirad.output import display
-from hemirad.output import export
-from hemirad.output import gltf
-from hemirad.core.errors import HemiradInputError, SceneError
-from hemirad.core.device import select_device
-from hemirad.transport.gl import GLContext, check_image_size
-from hemirad.geometry.mesh import Mesh
-from hemirad.scene.meshing import build_mesh
-from hemirad.output.meshview import pick_surface, surface_view
 from hemirad.adaptive.refine import Refiner
-from hemirad.output.render import render_view
-from hemirad.scene.model import Scene
-from hemirad.transport.solver import ProgressiveSolver, ShotReport, ambient_term
+from hemirad.core.device import select_device
+from hemirad.core.errors import HemiradInputError, SceneError
+from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import angle_quality
+from hemirad.output import display, export, gltf
+from hemirad.output.meshview import pick_surface, surface_view
+from hemirad.output.render import render_view
+from hemirad.scene.meshing import build_mesh
+from hemirad.scene.model import Scene
+from hemirad.transport.gl import GLContext, check_image_size
+from hemirad.transport.solver import ProgressiveSolver, ShotReport, ambient_term
 
 
 @dataclass

@@ -37,11 +37,10 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 import hemirad
-from hemirad.evaluation import metrics
-from hemirad.evaluation import reference
-from hemirad.transport.gl import GLContext
-from hemirad.scene.meshing import build_mesh
+from hemirad.evaluation import metrics, reference
 from hemirad.pipeline import Result, make_solver
+from hemirad.scene.meshing import build_mesh
+from hemirad.transport.gl import GLContext
 
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCES = ROOT / "tests" / "references"

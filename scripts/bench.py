@@ -35,9 +35,9 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 import hemirad
 from hemirad.core.device import select_device
-from hemirad.transport.gl import GLContext
 from hemirad.pipeline import make_solver
 from hemirad.scene.meshing import build_mesh
+from hemirad.transport.gl import GLContext
 
 ROOT = Path(__file__).resolve().parent.parent
 PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")

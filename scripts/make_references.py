@@ -30,8 +30,7 @@ import numpy as np
 import torch
 
 import hemirad
-from hemirad.evaluation import metrics
-from hemirad.evaluation import reference
+from hemirad.evaluation import metrics, reference
 from hemirad.scene.meshing import build_mesh
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -28,11 +28,11 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 import hemirad
-from hemirad.output import export
-from hemirad.transport.gl import GLContext
-from hemirad.scene.meshing import build_mesh
-from hemirad.output.meshview import pick_surface
 from hemirad.evaluation.penumbra import grid_cell, surface_grid, visible_light_fraction
+from hemirad.output import export
+from hemirad.output.meshview import pick_surface
+from hemirad.scene.meshing import build_mesh
+from hemirad.transport.gl import GLContext
 
 SCENES = {"office": "Fig. 5", "floating": "Fig. 6", "floating_coarse": "Fig. 7"}
 RUNS = {"a": "none", "b": "pattern1", "c": "pattern2"}

@@ -20,8 +20,7 @@ import pytest
 import torch
 
 import hemirad
-from hemirad.evaluation import metrics
-from hemirad.evaluation import reference
+from hemirad.evaluation import metrics, reference
 from hemirad.scene.meshing import build_mesh
 from hemirad.scene.model import Camera, Material, Quad, Scene
 

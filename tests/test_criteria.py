@@ -6,8 +6,8 @@ import torch
 
 from hemirad.adaptive.criteria import (ShotContext, gradient_score, neighbor_difference_score, partial_visibility_score,
                               receiver_score, uniform_score)
-from hemirad.geometry.analytic import point_to_triangles
 from hemirad.core.colour import luminance
+from hemirad.geometry.analytic import point_to_triangles
 
 from patches import quad, quads_mesh
 

@@ -16,11 +16,11 @@ import pytest
 import torch
 
 import hemirad
+from hemirad.adaptive.refine import Refiner
 from hemirad.core.device import select_device
 from hemirad.core.errors import HemiradInputError
 from hemirad.core.fastops import device_forms
 from hemirad.scene.meshing import build_mesh
-from hemirad.adaptive.refine import Refiner
 from hemirad.transport.solver import ProgressiveSolver
 
 CUDA = torch.cuda.is_available()

@@ -3,8 +3,8 @@ import pytest
 import torch
 
 from hemirad.core.colour import luminance
-from hemirad.output.display import auto_exposure, to_srgb8, vertex_values
 from hemirad.geometry.mesh import Mesh
+from hemirad.output.display import auto_exposure, to_srgb8, vertex_values
 
 
 def _srgb(x: float) -> float:

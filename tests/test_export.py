@@ -6,8 +6,8 @@ import torch
 import trimesh
 from PIL import Image
 
-from hemirad.output.export import read_ply_radiosity, write_ply, write_png, write_stats
 from hemirad.geometry.mesh import Mesh
+from hemirad.output.export import read_ply_radiosity, write_ply, write_png, write_stats
 
 
 def _two_surfaces() -> Mesh:

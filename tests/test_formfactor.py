@@ -4,9 +4,9 @@ import pytest
 import torch
 
 from hemirad.geometry.analytic import parallel_rectangles, perpendicular_rectangles, point_to_polygon
+from hemirad.geometry.mesh import Mesh
 from hemirad.transport.formfactor import delta_form_factors, raw_delta_form_factors
 from hemirad.transport.renderer import HemicubeRenderer
-from hemirad.geometry.mesh import Mesh
 
 from patches import closed_box, quad, quads_mesh
 

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from hemirad.geometry.analytic import point_to_polygon
-from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.adaptive.gradient import ReceiverPatches, form_factor_jacobian, interior_form_factors
 from hemirad.adaptive.shadow_edges import occlusion_pairs
+from hemirad.geometry.analytic import point_to_polygon
 from hemirad.geometry.mesh import Mesh
+from hemirad.transport.renderer import HemicubeRenderer
 
 Z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 

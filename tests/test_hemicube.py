@@ -4,10 +4,10 @@ import pytest
 import torch
 
 import hemirad
-from hemirad.transport.renderer import HemicubeRenderer
-from hemirad.transport.hemicube import FACES, face_visibility
-from hemirad.scene.meshing import build_mesh
 from hemirad.geometry.split import split_triangles
+from hemirad.scene.meshing import build_mesh
+from hemirad.transport.hemicube import FACES, face_visibility
+from hemirad.transport.renderer import HemicubeRenderer
 
 from patches import refined_solve
 

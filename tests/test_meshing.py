@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from hemirad.core.errors import HemiradWarning
+from hemirad.geometry.mesh import Mesh
 from hemirad.scene.loader import load_scene
 from hemirad.scene.meshing import box_face_corners, build_mesh, grid_quad, smooth_patches
-from hemirad.geometry.mesh import Mesh
 from hemirad.scene.model import Box, Camera, Material, MeshFile, Quad, Room, Scene
 
 DATA = Path(__file__).parent / "data"

@@ -9,11 +9,11 @@ from hemirad.output.display import (conforming_triangles, conforming_vertex_valu
                              vertex_values)
 from hemirad.core.errors import HemiradInputError
 from hemirad.geometry.mesh import Mesh
-from hemirad.scene.meshing import grid_quad
+from hemirad.geometry.split import split_triangles
 from hemirad.output.meshview import pick_surface, surface_view, view_basis
 from hemirad.output.render import render_view
+from hemirad.scene.meshing import grid_quad
 from hemirad.scene.model import Camera
-from hemirad.geometry.split import split_triangles
 
 UNIT_SQUARE = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float64)
 

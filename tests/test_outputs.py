@@ -12,8 +12,7 @@ import pytest
 import trimesh
 
 import hemirad
-from hemirad.output import display
-from hemirad.output import gltf
+from hemirad.output import display, gltf
 from hemirad.output.export import read_ply_radiosity
 
 SMALL_ROOM = Path(__file__).parent / "data" / "small_room.yaml"

@@ -5,10 +5,10 @@ import torch
 from skimage.metrics import structural_similarity
 
 import hemirad
+from hemirad.adaptive.refine import Refiner
 from hemirad.core.colour import luminance
 from hemirad.output.meshview import pick_surface, surface_view
 from hemirad.scene.meshing import build_mesh
-from hemirad.adaptive.refine import Refiner
 from hemirad.transport.solver import ProgressiveSolver
 
 from patches import closed_box, refined_solve

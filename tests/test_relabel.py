@@ -2,11 +2,11 @@
 import torch
 
 import hemirad
-from hemirad.transport.formfactor import element_form_factors
-from hemirad.transport.renderer import HemicubeRenderer
-from hemirad.scene.meshing import build_mesh
 from hemirad.adaptive.refine import Refiner
 from hemirad.adaptive.relabel import descendants, relabel_atlas, relabel_form_factors, split_pixels_of
+from hemirad.scene.meshing import build_mesh
+from hemirad.transport.formfactor import element_form_factors
+from hemirad.transport.renderer import HemicubeRenderer
 
 from patches import refined_solve
 

@@ -5,8 +5,8 @@ import torch
 
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patterns import CHILDREN, PATTERNS
-from hemirad.scene.meshing import grid_quad
 from hemirad.geometry.split import angle_quality, largest_angles, split_triangles
+from hemirad.scene.meshing import grid_quad
 
 
 def _triangle() -> Mesh:

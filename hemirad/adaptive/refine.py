@@ -9,8 +9,8 @@ from hemirad.core.colour import luminance
 from hemirad.core.fastops import flatnonzero
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patterns import CHILDREN
-from hemirad.scene.model import RefineOptions
 from hemirad.geometry.split import SplitRounds
+from hemirad.scene.model import RefineOptions
 from hemirad.transport.view import HemicubeView
 
 

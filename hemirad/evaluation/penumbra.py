@@ -11,10 +11,10 @@ import numpy as np
 import torch
 
 from hemirad.geometry.analytic import point_to_triangles
+from hemirad.geometry.mesh import Mesh
 from hemirad.transport.formfactor import decode_items, delta_form_factors
 from hemirad.transport.hemicube import Hemicube, tangent_frame
 from hemirad.transport.renderer import clip_planes
-from hemirad.geometry.mesh import Mesh
 
 
 def visible_light_fraction(mesh: Mesh, emitting: torch.Tensor, points: torch.Tensor, normal: torch.Tensor,

@@ -36,11 +36,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hemirad.output import display
 from hemirad.core.errors import HemiradInputError
 from hemirad.geometry.mesh import Mesh
-from hemirad.scene.meshing import build_mesh
+from hemirad.output import display
 from hemirad.output.render import render_view
+from hemirad.scene.meshing import build_mesh
 from hemirad.scene.model import Camera, Scene
 
 #: Mitsuba variants tried in order: the JIT-compiled LLVM one is 10-30x faster, but needs

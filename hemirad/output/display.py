@@ -19,8 +19,8 @@ import numpy as np
 import torch
 
 from hemirad.core.colour import luminance
-from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.edges import contains, edge_keys, midpoint_lookup, triangle_edges, unique_edge_keys
+from hemirad.geometry.mesh import Mesh
 
 # Linear display value that the mean scene luminance is mapped to by automatic exposure.
 MIDDLE_GREY = 0.18

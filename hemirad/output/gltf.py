@@ -25,8 +25,8 @@ import struct
 
 import numpy as np
 
-from hemirad.output.export import _as_numpy, _write_bytes
 from hemirad.geometry.mesh import Mesh
+from hemirad.output.export import _as_numpy, _write_bytes
 
 RADIOSITY_ATTRIBUTE = "_RADIOSITY"
 

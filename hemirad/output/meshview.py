@@ -12,12 +12,12 @@ import moderngl
 import numpy as np
 import torch
 
-from hemirad.output.display import conforming_triangles
 from hemirad.core.errors import HemiradInputError
 from hemirad.geometry.edges import unique_edges
-from hemirad.transport.gl import GLContext, check_image_size
 from hemirad.geometry.mesh import Mesh
+from hemirad.output.display import conforming_triangles
 from hemirad.output.render import _program, orthographic
+from hemirad.transport.gl import GLContext, check_image_size
 
 # Below this length of world +y projected onto the surface, the surface faces up or down
 # and +y no longer gives a stable image "up"; -z is used instead.

@@ -15,9 +15,9 @@ import numpy as np
 import torch
 
 from hemirad.core.errors import HemiradInputError
-from hemirad.transport.gl import GLContext, check_image_size
 from hemirad.geometry.mesh import Mesh
 from hemirad.scene.model import Camera
+from hemirad.transport.gl import GLContext, check_image_size
 
 _VERTEX_SHADER = """
 #version 330
@@ -193,6 +193,17 @@ def render_view(mesh: Mesh, vertex_colors, camera: Camera, triangles=None) -> np
     program["clip_from_eye"].write(projection.T.astype(np.float32).tobytes())
 
     big_w, big_h = width * ss, height * ss
+    raw = _draw(ctx, program, positions, colors, indices, big_w, big_h)
+    # glReadPixels returns the bottom row first; images are stored top row first.
+    big = np.frombuffer(raw, dtype=np.float32).reshape(big_h, big_w, 4)[::-1, :, :3]
+    return big.reshape(height, ss, width, ss, 3).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+
+
+def _draw(ctx, program, positions: np.ndarray, colors: np.ndarray, indices: np.ndarray, big_w: int,
+          big_h: int) -> bytes:
+    """Draw (V, 3) float32 eye-space ``positions`` with (V, 3) float32 ``colors`` as the (T, 3)
+    int32 triangles ``indices`` into a new ``big_w`` x ``big_h`` float framebuffer; its RGBA
+    float32 pixels, bottom row first. Every GL object made is released."""
     resources = []
     try:
         color_rb = ctx.renderbuffer((big_w, big_h), components=4, dtype="f4")
@@ -227,7 +238,4 @@ def render_view(mesh: Mesh, vertex_colors, camera: Camera, triangles=None) -> np
     finally:
         for resource in reversed(resources):
             resource.release()
-
-    # glReadPixels returns the bottom row first; images are stored top row first.
-    big = np.frombuffer(raw, dtype=np.float32).reshape(big_h, big_w, 4)[::-1, :, :3]
-    return big.reshape(height, ss, width, ss, 3).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+    return raw
