@@ -73,3 +73,39 @@ def test_ambient_term_fills_in_the_unshot_energy():
 def test_solver_is_deterministic():
     runs = [solve_box(0.5, [1.0, 0.0, 0.0], element_size=0.5, max_shots=30, unshot_fraction=0)[3] for _ in range(2)]
     assert torch.equal(runs[0].radiosity, runs[1].radiosity)
+
+
+def test_kept_form_factor_rows_give_the_rendered_solve_bit_for_bit():
+    # A shooter that shoots again reuses its row: the same numbers as rendering every shot,
+    # with one render per distinct shooter.
+    mesh = closed_box(element_size=0.5)
+    T = mesh.num_elements
+    rho = torch.full((T, 3), 0.7, dtype=torch.float64)
+    E = torch.zeros(T, 3, dtype=torch.float64)
+    E[0] = 5.0
+    states, renders = [], []
+    for cache_bytes in (1 << 20, 0):
+        solver = ProgressiveSolver(mesh, rho, E, 32, cache_bytes=cache_bytes)
+        try:
+            states.append(solver.run(max_shots=300, unshot_fraction=0.0))
+            renders.append(solver.rows.misses)
+        finally:
+            solver.close()
+    assert torch.equal(states[0].radiosity, states[1].radiosity) and torch.equal(states[0].unshot, states[1].unshot)
+    assert renders[1] == 300 and renders[0] <= T < 300
+
+
+def test_form_factor_rows_stay_within_their_budget():
+    from hemirad.transport.rowcache import FormFactorRows
+
+    rows = FormFactorRows(budget_bytes=3 * 16 * 10)  # three rows of ten elements reached
+    row = torch.zeros(100, dtype=torch.float64)
+    row[:10] = 0.01
+    for shooter in range(5):
+        rows.put(shooter, row * (shooter + 1))
+    assert len(rows) == 3 and rows.nbytes <= rows.budget_bytes
+    assert rows.get(0, 100) is None and torch.equal(rows.get(4, 100), row * 5)  # oldest dropped first
+    rows.put(5, row)
+    assert rows.get(2, 100) is None and rows.get(3, 100) is not None  # the least recently used went
+    rows.clear()
+    assert len(rows) == 0 and rows.get(3, 100) is None

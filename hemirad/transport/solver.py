@@ -19,6 +19,7 @@ from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import GrowingRows
 from hemirad.transport.gl import GLContext
 from hemirad.transport.renderer import HemicubeRenderer
+from hemirad.transport.rowcache import FormFactorRows
 from hemirad.transport.view import HemicubeView
 
 # The phases a solve's time is reported in (``ProgressiveSolver.timings``, stats.json).
@@ -29,6 +30,9 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
 ARITHMETIC = 1
+
+# Memory for kept form-factor rows by default: a row costs 16 bytes per element it reaches.
+DEFAULT_CACHE_BYTES = 256 << 20
 
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
@@ -121,6 +125,9 @@ class ProgressiveSolver:
         refiner: splits receivers during shots (``ShotRefiner``; docs/DESIGN.md §3); None
             for a fixed mesh.
         cull: per-face frustum culling in the hemicube (the same numbers, drawn faster).
+        cache_bytes: memory for the form-factor rows of shooters that shot
+            (``FormFactorRows``): a shooter that shoots again on an unchanged mesh reuses its
+            row instead of rendering its hemicube again (the same numbers).
         device: where the tensors live and the torch work runs (``device.select_device``);
             on CUDA the hemicubes are drawn by the GPU's OpenGL context. The inputs may be
             anywhere; ``state_dict`` is always on the CPU.
@@ -130,7 +137,8 @@ class ProgressiveSolver:
     """
 
     def __init__(self, mesh: Mesh, reflectance: torch.Tensor, emission: torch.Tensor, resolution: int,
-                 refiner: ShotRefiner | None = None, cull: bool = True, device: torch.device | str = "cpu"):
+                 refiner: ShotRefiner | None = None, cull: bool = True, cache_bytes: int = DEFAULT_CACHE_BYTES,
+                 device: torch.device | str = "cpu"):
         self.device = torch.device(device)
         mesh = mesh.to(self.device)
         reflectance, emission = reflectance.to(self.device), emission.to(self.device)
@@ -141,6 +149,7 @@ class ProgressiveSolver:
         self.profiler = Profiler(PHASES)
         self.renderer = HemicubeRenderer(mesh, resolution, cull, self.device, self.profiler)
         self.refiner = refiner
+        self.rows = FormFactorRows(cache_bytes)
 
     def close(self) -> None:
         self.renderer.close()
@@ -171,6 +180,7 @@ class ProgressiveSolver:
             rows.inherit(parent) for rows in self._per_element)
         self.areas = mesh.areas
         self.renderer.set_geometry(mesh)
+        self.rows.clear()
 
     def shoot(self) -> int | None:
         """One shot from the element with the largest unshot power; None when nothing is left.
@@ -184,10 +194,21 @@ class ProgressiveSolver:
         shot_power = power[shooter].clone()
         if float(shot_power.sum()) <= 0.0:
             return None
-        view = self.render(shooter) if self.refiner is None else self.refiner.shoot(self, shooter, shot_power)
+        if self.refiner is None:
+            F = self.form_factors_of(shooter)
+        else:
+            F = self.refiner.shoot(self, shooter, shot_power).form_factors
         with self.profiler.phase("update"):
-            self._commit(shooter, shot_power, view.form_factors)
+            self._commit(shooter, shot_power, F)
         return shooter
+
+    def form_factors_of(self, shooter: int) -> torch.Tensor:
+        """(T,) F_sj from ``shooter`` on the current mesh: its kept row, else rendered (and kept)."""
+        F = self.rows.get(shooter, self.mesh.num_elements)
+        if F is None:
+            F = self.render(shooter).form_factors
+            self.rows.put(shooter, F)
+        return F
 
     def _commit(self, shooter: int, shot_power: torch.Tensor, F: torch.Tensor) -> None:
         """Hand every receiver what the shot of ``shot_power`` (3,) with form factors F (T,) gives it."""
@@ -265,4 +286,5 @@ class ProgressiveSolver:
         if self.refiner is not None:
             self.refiner.load_state_dict(state["refiner"])
         self.renderer.set_geometry(mesh)
+        self.rows.clear()
         self.profiler.load_state_dict(timings)
