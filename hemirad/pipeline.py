@@ -20,9 +20,11 @@ import torch
 
 from hemirad import checkpoint as checkpoints
 from hemirad.adaptive.refine import Refiner
+from hemirad.adaptive.shooter_split import point_source_test
 from hemirad.core.device import select_device
 from hemirad.core.errors import HemiradInputError, SceneError
 from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.patches import build_patches
 from hemirad.geometry.split import angle_quality
 from hemirad.output import display, export, gltf
 from hemirad.output.meshview import pick_surface, surface_view
@@ -30,6 +32,7 @@ from hemirad.output.render import render_view
 from hemirad.scene.meshing import build_mesh
 from hemirad.scene.model import Scene
 from hemirad.transport.gl import GLContext, check_image_size
+from hemirad.transport.shooters import PatchShooters
 from hemirad.transport.solver import ProgressiveSolver, ShotReport, ambient_term
 
 
@@ -137,8 +140,16 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
     reflectance = scene.reflectance_table()[mesh.material]
     emission = scene.emission_table()[mesh.material]
     refiner = Refiner(scene.refine, emission, relabel=relabel, bound=bound) if scene.refine.enabled else None
-    device = select_device(scene.solver.device) if device is None else device
-    return ProgressiveSolver(mesh, reflectance, emission, scene.solver.resolution, refiner, cull=cull, device=device)
+    device = torch.device(select_device(scene.solver.device) if device is None else device)
+    options = scene.solver
+    patches = None
+    if options.patch_size is not None:
+        tree = build_patches(mesh, np.full(mesh.num_elements, options.patch_size))
+        test = None if options.shooter_split is None else point_source_test(options.shooter_split)
+        patches = PatchShooters(tree, device, test)
+    return ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner, cull=cull,
+                             cache_bytes=int(options.cache_mb * (1 << 20)), patches=patches,
+                             overshoot=options.overshoot, near_reach=options.near_reach, device=device)
 
 
 def _restore(solver: ProgressiveSolver, state: dict, run: dict, path, initial_elements: int) -> dict:

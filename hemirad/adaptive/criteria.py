@@ -24,7 +24,7 @@ class ShotContext:
 
     Attributes:
         mesh: the current mesh (T elements).
-        shooter: index of the shooting element.
+        shooter: the shooter (an element's index, or a patch tree's node: ``transport.shooters``).
         eye: (3,) the hemicube's centre; normal: (3,) the shooter's normal.
         form_factors: (T,) F_sj.
         luminance_per_form_factor: (T,) d(luminance of received)/dF_sj: the luminance of
@@ -32,6 +32,9 @@ class ShotContext:
         jacobian: (T, 3) dF_sj/dc (interior and/or shadow-edge terms), when the criterion
             needs it; zero outside ``candidates``.
         candidates: (T,) bool, the receivers this pass of the shot judges; None for all.
+        shooter_offsets: (K, 3) the shooter's corners P_k less the point G it shoots from;
+            None: the corners of element ``shooter`` less their mean. A patch shooting from
+            its centroid (``transport.shooters``) gives its elements' corners.
     """
 
     mesh: Mesh
@@ -42,6 +45,12 @@ class ShotContext:
     luminance_per_form_factor: torch.Tensor
     jacobian: torch.Tensor | None = None
     candidates: torch.Tensor | None = None
+    shooter_offsets: torch.Tensor | None = None
+
+    def __post_init__(self):
+        if self.shooter_offsets is None:
+            corners = self.mesh.corners_of(self.shooter)
+            self.shooter_offsets = corners - corners.mean(0)  # (3, 3)
 
 
 def _rows(values: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
@@ -59,9 +68,7 @@ def gradient_score(ctx: ShotContext, rows: torch.Tensor | None = None) -> torch.
     of its corners instead of its centroid: large where a point source is a poor stand-in.
     """
     grad = _rows(ctx.luminance_per_form_factor, rows)[:, None] * _rows(ctx.jacobian, rows)  # (R, 3)
-    shooter = ctx.mesh.corners_of(ctx.shooter)
-    offsets = shooter - shooter.mean(0)  # (3, 3)
-    return (grad @ offsets.T).abs().amax(dim=1)
+    return (grad @ ctx.shooter_offsets.T).abs().amax(dim=1)
 
 
 def gradient_score_bound(ctx: ShotContext, rows: torch.Tensor, distance: torch.Tensor,
@@ -86,8 +93,7 @@ def gradient_score_bound(ctx: ShotContext, rows: torch.Tensor, distance: torch.T
     normals = ctx.mesh.normals.index_select(0, rows)  # (R, 3)
     sin_alpha = torch.linalg.cross(normals, ctx.normal.expand_as(normals), dim=1).norm(dim=1)
     in_plane = (sin_alpha * _rows(ctx.form_factors, rows) + 4.0 * sine_sums) / distance.abs()
-    shooter = ctx.mesh.corners_of(ctx.shooter)
-    reach = (shooter - shooter.mean(0)).norm(dim=1).max()  # max_k |P_k - G|
+    reach = ctx.shooter_offsets.norm(dim=1).max()  # max_k |P_k - G|
     return _rows(ctx.luminance_per_form_factor, rows) * in_plane * reach
 
 

@@ -60,18 +60,21 @@ class Refiner:
         """Which form-factor gradient the criterion needs: "full", "interior" or None."""
         return self.criterion.jacobian
 
-    def splittable(self, mesh: Mesh, shooter: int, rows: torch.Tensor | None = None) -> torch.Tensor:
+    def splittable(self, mesh: Mesh, shooter, rows: torch.Tensor | None = None) -> torch.Tensor:
         """(T,) bool: the receivers a shot from ``shooter`` may split, whatever their score:
         under the depth limit, with children no smaller than ``min_area``, and not the
-        shooter (its own hemicube is being used); among ``rows`` (R,) only, when given."""
+        shooter's own (its hemicube is being used): ``shooter`` an element's index, or a
+        (K,) tensor of the elements a patch shoots from; among ``rows`` (R,) only, when given."""
         o = self.options
         if rows is None:
             out = (mesh.level < o.max_depth) & (mesh.areas / self.children >= o.min_area)
             out[shooter] = False
             return out
         level, areas = mesh.level.index_select(0, rows), mesh.areas.index_select(0, rows)
+        keep = (level < o.max_depth) & (areas / self.children >= o.min_area)
+        keep &= (rows != shooter) if isinstance(shooter, int) else ~torch.isin(rows, shooter)
         out = torch.zeros(mesh.num_elements, dtype=torch.bool, device=rows.device)
-        out[rows[(level < o.max_depth) & (areas / self.children >= o.min_area) & (rows != shooter)]] = True
+        out[rows[keep]] = True
         return out
 
     def _candidates(self, ctx: ShotContext) -> tuple[torch.Tensor, torch.Tensor]:

@@ -37,12 +37,13 @@ def refining_shot(refiner: "Refiner", solver: "ProgressiveSolver", shooter: int,
     (``relabel.relabel_view``, with ``refiner.relabel``) rather than rendered again.
     """
     profiler = solver.profiler
-    candidates = refiner.splittable(solver.mesh, shooter)
+    candidates = refiner.splittable(solver.mesh, solver.shooter_elements(shooter))
     gain = luminance_per_form_factor(solver, shot_power)
     view = solver.render(shooter)
     while True:
-        ctx = ShotContext(mesh=solver.mesh, shooter=shooter, eye=view.eye, normal=solver.mesh.normals[shooter],
-                          form_factors=view.form_factors, luminance_per_form_factor=gain, candidates=candidates)
+        normal, offsets = solver.shooter_frame(shooter)
+        ctx = ShotContext(mesh=solver.mesh, shooter=shooter, eye=view.eye, normal=normal, form_factors=view.form_factors,
+                          luminance_per_form_factor=gain, candidates=candidates, shooter_offsets=offsets)
         with profiler.phase("gradient"):
             ctx.jacobian = shot_jacobian(refiner, ctx, view)
         with profiler.phase("refine"):
@@ -54,9 +55,9 @@ def refining_shot(refiner: "Refiner", solver: "ProgressiveSolver", shooter: int,
             solver.adopt_split(mesh, parent)
             split = torch.unique(parent[T:])
             new = torch.cat([split, torch.arange(T, len(parent), device=split.device)])  # their rows in the new mesh
-            candidates = refiner.splittable(mesh, shooter, new)
+            candidates = refiner.splittable(mesh, solver.shooter_elements(shooter), new)
             gain = inherit(gain, parent).index_copy_(0, new, luminance_per_form_factor(solver, shot_power, new))
-            if refiner.relabel and not bool((split == shooter).any()):  # the eye has not moved
+            if refiner.relabel and not solver.eye_moves(shooter, split):
                 view = relabel_view(view, parent, split, mesh)
                 continue
         view = solver.render(shooter)

@@ -112,6 +112,11 @@ class SolverOptions:
     resolution: int = 128  # hemicube top face is resolution x resolution pixels
     ambient: bool = True  # add Cohen et al.'s ambient term to the displayed radiosity
     device: str = "cpu"  # where the torch work runs: one of hemirad.core.device.DEVICE_NAMES
+    patch_size: float | None = None  # side of the patches that shoot; None: every element shoots
+    overshoot: bool = True  # with patches: shoot rho times the ambient more (Feda & Purgathofer)
+    near_reach: float = 3.0  # with patches: spread their light to receivers within this many patch radii
+    shooter_split: float | None = None  # with patches: split a shooter where eq. 7 exceeds this share
+    cache_mb: float = 256.0  # memory for form-factor rows kept between a shooter's shots
 
 
 @dataclass

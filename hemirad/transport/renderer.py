@@ -59,10 +59,16 @@ class HemicubeRenderer:
         """Render the hemicube of element ``shooter`` (a point at its centroid) and sum its
         form factors to every element."""
         mesh = self.mesh
-        normal = mesh.normals[shooter].cpu().numpy()
         corners = mesh.corners_of(shooter).cpu().numpy()
-        frame = tangent_frame(normal, corners[1] - corners[0])
-        eye = mesh.centroids[shooter].cpu().numpy() + self.near * normal
+        return self.render_at(mesh.centroids[shooter].cpu().numpy(), mesh.normals[shooter].cpu().numpy(),
+                              corners[1] - corners[0])
+
+    def render_at(self, point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> HemicubeView:
+        """Render the hemicube at ``point`` (3,) on a surface of unit ``normal`` (3,), its frame
+        turned by the in-plane ``tangent`` (3,), and sum its form factors to every element."""
+        mesh = self.mesh
+        frame = tangent_frame(normal, tangent)
+        eye = point + self.near * normal
         items = self.hemicube.render(eye, frame, self.near, self.far)
         with self.profiler.phase("form_factors"):
             element, front = (x.to(self.device).reshape(-1) for x in decode_items(items))

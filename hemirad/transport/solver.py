@@ -18,8 +18,10 @@ from hemirad.core.timing import Profiler
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import GrowingRows
 from hemirad.transport.gl import GLContext
+from hemirad.transport.nearfield import NearReceivers, incident_power, near_receivers
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
+from hemirad.transport.shooters import PatchShooters
 from hemirad.transport.view import HemicubeView
 
 # The phases a solve's time is reported in (``ProgressiveSolver.timings``, stats.json).
@@ -125,6 +127,14 @@ class ProgressiveSolver:
         refiner: splits receivers during shots (``ShotRefiner``; docs/DESIGN.md §3); None
             for a fixed mesh.
         cull: per-face frustum culling in the hemicube (the same numbers, drawn faster).
+        patches: shoot by patches (their elements' power from the nodes of their trees)
+            instead of by elements; None: every element shoots, as in the paper.
+        overshoot: with patches, a shooter also shoots the radiosity it can expect to
+            receive later, rho_s times the ambient term (Feda & Purgathofer 1992), and keeps
+            it as negative unshot radiosity; power stays conserved exactly and the solve
+            converges in fewer shots.
+        near_reach: with patches, the receivers within this many patch radii of a patch's
+            centroid get its light spread as its elements send it (``nearfield``); 0: none.
         cache_bytes: memory for the form-factor rows of shooters that shot
             (``FormFactorRows``): a shooter that shoots again on an unchanged mesh reuses its
             row instead of rendering its hemicube again (the same numbers).
@@ -138,6 +148,7 @@ class ProgressiveSolver:
 
     def __init__(self, mesh: Mesh, reflectance: torch.Tensor, emission: torch.Tensor, resolution: int,
                  refiner: ShotRefiner | None = None, cull: bool = True, cache_bytes: int = DEFAULT_CACHE_BYTES,
+                 patches: PatchShooters | None = None, overshoot: bool = False, near_reach: float = 0.0,
                  device: torch.device | str = "cpu"):
         self.device = torch.device(device)
         mesh = mesh.to(self.device)
@@ -150,18 +161,46 @@ class ProgressiveSolver:
         self.renderer = HemicubeRenderer(mesh, resolution, cull, self.device, self.profiler)
         self.refiner = refiner
         self.rows = FormFactorRows(cache_bytes)
+        self.patches = patches
+        self.overshoot = overshoot and patches is not None
+        self.near_reach = near_reach if patches is not None else 0.0
+        self._near: dict[int, NearReceivers] = {}
 
     def close(self) -> None:
         self.renderer.close()
 
     @property
     def unshot_fraction(self) -> float:
-        unshot_power = (self.state.unshot * self.areas[:, None]).sum()
+        """The magnitude of the unshot power over the emitted power (overshooting leaves
+        some unshot radiosity negative)."""
+        unshot_power = (self.state.unshot.abs() * self.areas[:, None]).sum()
         return float(unshot_power / self.emitted_power.sum())
 
     def render(self, shooter: int) -> HemicubeView:
-        """What the hemicube of element ``shooter`` sees on the current mesh, with F_sj."""
-        return self.renderer.render(shooter)
+        """What the hemicube of ``shooter`` (an element, or with patches a node of their
+        trees) sees on the current mesh, with F_sj."""
+        if self.patches is None:
+            return self.renderer.render(shooter)
+        tree = self.patches.tree
+        return self.renderer.render_at(*(x[shooter].numpy() for x in (tree.centroid, tree.normal, tree.tangent)))
+
+    def shooter_elements(self, shooter: int) -> int | torch.Tensor:
+        """The elements ``shooter`` is: the element itself, or (K,) a node's elements."""
+        return shooter if self.patches is None else self.patches.members(shooter)
+
+    def shooter_frame(self, shooter: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(3,) the normal ``shooter`` shoots along and (K, 3) its elements' corners less the
+        point it shoots from (None for an element: its own corners less their mean)."""
+        if self.patches is None:
+            return self.mesh.normals[shooter], None
+        tree = self.patches.tree
+        corners = self.mesh.corners_of(self.patches.members(shooter)).reshape(-1, 3)
+        return tree.normal[shooter].to(self.device), corners - tree.centroid[shooter].to(self.device)
+
+    def eye_moves(self, shooter: int, split: torch.Tensor) -> bool:
+        """Whether splitting the (K,) elements ``split`` moves the hemicube of ``shooter``: an
+        element's sits at its centroid (its index then holds its first child); a node's stays."""
+        return self.patches is None and bool((split == shooter).any())
 
     def _adopt(self, reflectance: torch.Tensor, emission: torch.Tensor, state: SolverState) -> None:
         """Make these the per-element values, kept in buffers that splits append to
@@ -181,13 +220,19 @@ class ProgressiveSolver:
         self.areas = mesh.areas
         self.renderer.set_geometry(mesh)
         self.rows.clear()
+        self._near.clear()
+        if self.patches is not None:
+            self.patches.inherit(parent)
 
     def shoot(self) -> int | None:
-        """One shot from the element with the largest unshot power; None when nothing is left.
+        """One shot from the element (or with patches, the patch) with the largest unshot
+        power; None when nothing is left. Returns the element, or the patch.
 
         With a refiner, the refiner runs the shot (it may split receivers and redo it
         before anything is committed); the view it returns is committed.
         """
+        if self.patches is not None:
+            return self._shoot_patch()
         state = self.state
         power = state.unshot * self.areas[:, None]  # (T, 3)
         shooter = int(torch.argmax(row_sums(power)))
@@ -202,24 +247,90 @@ class ProgressiveSolver:
             self._commit(shooter, shot_power, F)
         return shooter
 
+    def _shoot_patch(self) -> int | None:
+        """One shot of the patch with the most unshot power: each node of its cut shoots its
+        elements' unshot power (and with ``overshoot``, rho times the ambient more)."""
+        patches, state = self.patches, self.state
+        ambient = None
+        if self.overshoot:  # what each element would shoot: its unshot radiosity and rho times the ambient
+            ambient = ambient_term(state.unshot, self.reflectance, self.areas).clamp(min=0.0)
+            patch = patches.strongest((state.unshot + self.reflectance * ambient) * self.areas[:, None])
+        else:
+            patch = patches.strongest(state.unshot * self.areas[:, None])
+        if patch is None:
+            return None
+        nodes = patches.cut(patch, self.render_and_keep,
+                            lambda node: self.mesh.corners_of(patches.members(node)).reshape(-1, 3))
+        for node in nodes:
+            with self.profiler.phase("update"):
+                members = patches.members(node)
+                shot = state.unshot.index_select(0, members)  # (K, 3) radiosity
+                if ambient is not None:
+                    shot = shot + self.reflectance.index_select(0, members) * ambient
+                member_power = shot * self.areas.index_select(0, members)[:, None]
+                shot_power = member_power.sum(0)
+                # taken before the shot: a refining shot may split the node's elements, whose
+                # children then inherit what is left
+                state.unshot.index_add_(0, members, -shot)
+            if self.refiner is None:
+                F = self.form_factors_of(node)
+            else:
+                F = self.refiner.shoot(self, node, shot_power).form_factors
+                members = patches.members(node)  # the split ones' children: their shares by area
+                member_power = shot_power * (self.areas.index_select(0, members) / self.areas[members].sum())[:, None]
+            with self.profiler.phase("update"):
+                near = self._near_receivers(node, members, F)
+                self._receive_incident(incident_power(F, shot_power, near, member_power), shot_power)
+        state.shots += 1
+        return patch
+
     def form_factors_of(self, shooter: int) -> torch.Tensor:
         """(T,) F_sj from ``shooter`` on the current mesh: its kept row, else rendered (and kept)."""
         F = self.rows.get(shooter, self.mesh.num_elements)
-        if F is None:
-            F = self.render(shooter).form_factors
-            self.rows.put(shooter, F)
-        return F
+        return self.render_and_keep(shooter).form_factors if F is None else F
+
+    def render_and_keep(self, shooter: int) -> HemicubeView:
+        """``render(shooter)``, its form-factor row kept for the shooter's next shot."""
+        view = self.render(shooter)
+        self.rows.put(shooter, view.form_factors)
+        return view
 
     def _commit(self, shooter: int, shot_power: torch.Tensor, F: torch.Tensor) -> None:
-        """Hand every receiver what the shot of ``shot_power`` (3,) with form factors F (T,) gives it."""
+        """Hand every receiver what the shot of ``shot_power`` (3,) with form factors F (T,)
+        from element ``shooter`` gives it; the shooter's unshot radiosity is then spent."""
+        self._receive(shot_power, F)
+        self.state.unshot[shooter] = 0.0
+        self.state.shots += 1
+
+    def _near_receivers(self, node: int, members: torch.Tensor, F: torch.Tensor) -> NearReceivers | None:
+        """The receivers near ``node`` whose light its elements spread (``nearfield``), kept
+        while the mesh is unchanged; None without a near field."""
+        if self.near_reach <= 0 or len(members) < 2:
+            return None
+        if node not in self._near:
+            tree = self.patches.tree
+            self._near[node] = near_receivers(self.mesh, members, tree.centroid[node].to(self.device),
+                                              tree.normal[node].to(self.device), F, self.near_reach)
+        return self._near[node]
+
+    def _receive_incident(self, incident: torch.Tensor, shot_power: torch.Tensor) -> None:
+        """Hand every receiver what reaches its front, ``incident`` (T, 3) power, of a shot of
+        ``shot_power`` (3,); the rest escaped."""
+        state = self.state
+        delta = self.reflectance * incident / self.areas[:, None]
+        state.radiosity += delta
+        state.unshot += delta
+        state.absorbed += ((1.0 - self.reflectance) * incident).sum(0)
+        state.escaped += shot_power - incident.sum(0)
+
+    def _receive(self, shot_power: torch.Tensor, F: torch.Tensor) -> None:
+        """Hand every receiver what a shot of ``shot_power`` (3,) with form factors F (T,) gives it."""
         state = self.state
         delta = received_radiosity(F, shot_power, self.reflectance, self.areas)
         state.radiosity += delta
         state.unshot += delta
-        state.unshot[shooter] = 0.0
         state.absorbed += ((1.0 - self.reflectance) * F[:, None]).sum(0) * shot_power
         state.escaped += (1.0 - F.sum()) * shot_power
-        state.shots += 1
 
     def run(self, max_shots: int, unshot_fraction: float,
             progress: Callable[[ShotReport], None] | None = None) -> SolverState:

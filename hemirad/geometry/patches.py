@@ -1,0 +1,165 @@
+"""Patches: groups of initial elements that shoot together, and the tree of sub-patches each
+may shoot from instead (docs/DESIGN.md §1.4).
+
+A patch is the set of a planar surface's elements whose centroids fall into one square cell
+of side ``patch_size`` laid over that plane; an element of a curved surface is a patch of
+its own. Each patch is split recursively into quadrants (of its own bounding square in the
+plane) down to single elements: the nodes of that tree are the shooters a patch may use
+where its centroid is a poor stand-in for its extent (``transport.shooters``).
+
+Nodes are numbered depth-first, and every node's elements are one contiguous range of
+*leaf positions*, so "is element e in node n" is ``lo[n] <= leaf[e] < hi[n]``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from hemirad.geometry.mesh import Mesh
+
+
+@dataclass(frozen=True)
+class PatchTree:
+    """The patches of an initial mesh of T elements and their sub-patch trees (N nodes, P patches).
+
+    Attributes:
+        leaf: (T,) int64 each initial element's leaf position (a permutation of 0..T-1).
+        patch: (T,) int64 each initial element's patch.
+        root: (P,) int64 the node of each patch.
+        lo, hi: (N,) int64 each node's range [lo, hi) of leaf positions.
+        child_start: (N + 1,) int64 and child_ids: (C,) int64: the children of node n are
+            ``child_ids[child_start[n]:child_start[n + 1]]`` (none: a single element).
+        centroid, normal, tangent: (N, 3) float64 where a node shoots from: the area-weighted
+            centroid of its elements, their plane's unit normal, and an in-plane direction
+            that fixes its hemicube's frame.
+        area: (N,) float64.
+    """
+
+    leaf: torch.Tensor
+    patch: torch.Tensor
+    root: torch.Tensor
+    lo: torch.Tensor
+    hi: torch.Tensor
+    child_start: torch.Tensor
+    child_ids: torch.Tensor
+    centroid: torch.Tensor
+    normal: torch.Tensor
+    tangent: torch.Tensor
+    area: torch.Tensor
+
+    @property
+    def num_patches(self) -> int:
+        return len(self.root)
+
+    @property
+    def num_nodes(self) -> int:
+        return len(self.lo)
+
+    def children(self, node: int) -> list[int]:
+        return self.child_ids[int(self.child_start[node]):int(self.child_start[node + 1])].tolist()
+
+
+def plane_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors u, v spanning the plane of the unit ``normal`` (3,), u x v = normal."""
+    helper = np.eye(3)[int(np.argmin(np.abs(normal)))]  # the world axis least along the normal
+    u = np.cross(helper, normal)
+    u /= np.linalg.norm(u)
+    return u, np.cross(normal, u)
+
+
+def build_patches(mesh: Mesh, patch_size: np.ndarray) -> PatchTree:
+    """Group the elements of ``mesh`` into patches of about ``patch_size`` (T,) (a side length
+    per element; elements of one plane should agree) and build each patch's quadrant tree."""
+    centroids = mesh.centroids.cpu().numpy()
+    normals = mesh.normals.cpu().numpy()
+    areas = mesh.areas.cpu().numpy()
+    corners = mesh.corners.cpu().numpy()
+    edges = corners[:, 1] - corners[:, 0]
+    groups = _plane_cells(mesh.plane_ids.cpu().numpy(), centroids, normals, areas, np.asarray(patch_size))
+    builder = _TreeBuilder(centroids, normals, areas, edges)
+    roots, patch = [], np.empty(mesh.num_elements, dtype=np.int64)
+    for index, (members, u, v) in enumerate(groups):
+        patch[members] = index
+        roots.append(builder.node(members, u, v))
+    return builder.finish(np.asarray(roots, dtype=np.int64), patch)
+
+
+def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarray, areas: np.ndarray,
+                 patch_size: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The patches as (members (k,), plane axes u, v): per plane, the elements whose centroids
+    share a cell of the plane's square grid (its side the plane's smallest patch size)."""
+    order = np.argsort(plane_ids, kind="stable")
+    bounds = np.flatnonzero(np.diff(plane_ids[order])) + 1
+    out = []
+    for members in np.split(order, bounds):
+        normal = (normals[members] * areas[members, None]).sum(0)
+        normal /= np.linalg.norm(normal)
+        u, v = plane_axes(normal)
+        if len(members) == 1:
+            out.append((members, u, v))
+            continue
+        xy = centroids[members] @ np.stack([u, v]).T  # (k, 2)
+        size = float(patch_size[members].min())
+        cell = np.floor((xy - xy.min(0)) / size).astype(np.int64)
+        key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
+        by_cell = np.argsort(key, kind="stable")
+        cuts = np.flatnonzero(np.diff(key[by_cell])) + 1
+        out += [(members[part], u, v) for part in np.split(by_cell, cuts)]
+    return out
+
+
+class _TreeBuilder:
+    """Numbers nodes depth-first while splitting each patch into quadrants."""
+
+    def __init__(self, centroids, normals, areas, edges):
+        self.centroids, self.normals, self.areas, self.edges = centroids, normals, areas, edges
+        self.leaf_order: list[int] = []
+        self.rows: list[list] = []  # per node: lo, hi, children, centroid, normal, tangent, area
+
+    def node(self, members: np.ndarray, u: np.ndarray, v: np.ndarray) -> int:
+        index = len(self.rows)
+        self.rows.append(None)
+        lo = len(self.leaf_order)
+        if len(members) == 1:
+            e = int(members[0])
+            self.leaf_order.append(e)
+            # a single element shoots from where an element's own hemicube is: its centroid,
+            # its normal, its first edge
+            self.rows[index] = [lo, lo + 1, [], self.centroids[e], self.normals[e], self.edges[e], self.areas[e]]
+            return index
+        parts = _quadrants(self.centroids[members] @ np.stack([u, v]).T)
+        children = [self.node(members[part], u, v) for part in parts]
+        weights = self.areas[members]
+        area = float(weights.sum())
+        centroid = (self.centroids[members] * weights[:, None]).sum(0) / area
+        normal = (self.normals[members] * weights[:, None]).sum(0)
+        normal /= np.linalg.norm(normal)
+        self.rows[index] = [lo, len(self.leaf_order), children, centroid, normal, u, area]
+        return index
+
+    def finish(self, roots: np.ndarray, patch: np.ndarray) -> PatchTree:
+        lo, hi, children, centroid, normal, tangent, area = (list(col) for col in zip(*self.rows))
+        leaf = np.empty(len(self.leaf_order), dtype=np.int64)
+        leaf[np.asarray(self.leaf_order, dtype=np.int64)] = np.arange(len(self.leaf_order))
+        child_start = np.concatenate([[0], np.cumsum([len(c) for c in children])])
+        child_ids = np.asarray([c for cs in children for c in cs], dtype=np.int64)
+        f64 = dict(dtype=torch.float64)
+        return PatchTree(torch.from_numpy(leaf), torch.from_numpy(patch), torch.from_numpy(roots),
+                         torch.tensor(lo), torch.tensor(hi), torch.from_numpy(child_start), torch.from_numpy(child_ids),
+                         torch.tensor(np.stack(centroid), **f64), torch.tensor(np.stack(normal), **f64),
+                         torch.tensor(np.stack(tangent), **f64), torch.tensor(area, **f64))
+
+
+def _quadrants(xy: np.ndarray) -> list[np.ndarray]:
+    """Split (k, 2) points (k >= 2) into the non-empty quadrants of their bounding box, or
+    into two halves by index when they all lie in one quadrant (coincident centroids)."""
+    mid = 0.5 * (xy.min(0) + xy.max(0))
+    quadrant = (xy[:, 0] > mid[0]).astype(np.int64) * 2 + (xy[:, 1] > mid[1])
+    parts = [np.flatnonzero(quadrant == q) for q in range(4)]
+    parts = [p for p in parts if len(p)]
+    if len(parts) == 1:
+        half = len(xy) // 2
+        parts = [np.arange(half), np.arange(half, len(xy))]
+    return parts

@@ -1,0 +1,117 @@
+"""Patches shoot, elements receive (Cohen, Chen, Wallace & Greenberg 1986): which patch shoots
+next, and which of its sub-patches its power leaves from (docs/DESIGN.md §1.4).
+
+A patch's power is the sum of its elements' unshot power, so the number of shots to converge
+follows the number of patches, not of elements. A patch shoots from one hemicube at its
+centroid unless a ``ShooterTest`` finds that point a poor stand-in for its extent (the
+paper's eq. 7 turned on the shooter: ``adaptive.shooter_split``); then it shoots from its
+quadrants, recursively, down to single elements as hierarchical radiosity refines the larger
+of two interacting patches (Hanrahan, Salzman & Aupperle 1991). A patch's choice is made the
+first time it shoots and kept: it depends on geometry only.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from hemirad.core.fastops import flatnonzero, row_sums
+from hemirad.geometry.patches import PatchTree
+from hemirad.geometry.split import GrowingRows
+from hemirad.transport.view import HemicubeView
+
+# (what a node's hemicube saw, (K, 3) the corners of the node's elements) -> shoot from its
+# children instead?
+ShooterTest = Callable[[HemicubeView, torch.Tensor], bool]
+
+
+class PatchShooters:
+    """The patches of a solve, followed through the receivers' splits.
+
+    Args:
+        tree: the patches of the initial mesh (``geometry.patches.build_patches``).
+        device: where the per-element rows live.
+        split_test: decides whether a node shoots from its children; None: every patch
+            shoots from its centroid.
+    Attributes:
+        leaf, patch: (T,) int64 each element's leaf position and patch (children inherit
+            their parent's).
+        cuts: per patch that shot, the nodes its power leaves from.
+        shooter_splits: nodes that shoot from their children instead of themselves.
+    """
+
+    def __init__(self, tree: PatchTree, device: torch.device, split_test: ShooterTest | None = None):
+        self.tree = tree
+        self.split_test = split_test
+        self._leaf = GrowingRows(tree.leaf.to(device))
+        self._patch = GrowingRows(tree.patch.to(device))
+        self.cuts: dict[int, list[int]] = {}
+        self.shooter_splits = 0
+
+    @property
+    def leaf(self) -> torch.Tensor:
+        return self._leaf.values
+
+    @property
+    def patch(self) -> torch.Tensor:
+        return self._patch.values
+
+    def inherit(self, parent: torch.Tensor) -> None:
+        """Follow a split of the receivers: new element i lies in old element ``parent[i]`` (T',)."""
+        self._leaf.inherit(parent)
+        self._patch.inherit(parent)
+
+    def strongest(self, power: torch.Tensor) -> int | None:
+        """The patch whose elements hold the most unshot power (its magnitude: overshooting
+        leaves some negative), from the per-element ``power`` (T, 3); None when all is shot."""
+        magnitude = torch.zeros(self.tree.num_patches, dtype=power.dtype, device=power.device)
+        magnitude.index_add_(0, self.patch, row_sums(power.abs()))
+        best = int(torch.argmax(magnitude))
+        return best if float(magnitude[best]) > 0.0 else None
+
+    def members(self, node: int) -> torch.Tensor:
+        """(K,) the elements of ``node``."""
+        leaf = self.leaf
+        return flatnonzero((leaf >= int(self.tree.lo[node])) & (leaf < int(self.tree.hi[node])))
+
+    def cut(self, patch: int, render: Callable[[int], HemicubeView], corners: Callable[[int], torch.Tensor]
+            ) -> list[int]:
+        """The nodes ``patch`` shoots from: its root, or where ``split_test`` says so, its
+        children's cuts. ``render(node)`` gives a node's view, ``corners(node)`` (K, 3) its
+        elements' corners."""
+        if patch in self.cuts:
+            return self.cuts[patch]
+        nodes, pending = [], [int(self.tree.root[patch])]
+        while pending:
+            node = pending.pop()
+            children = self.tree.children(node)
+            if children and self.split_test is not None and self.split_test(render(node), corners(node)):
+                pending += reversed(children)
+                self.shooter_splits += 1
+            else:
+                nodes.append(node)
+        self.cuts[patch] = nodes
+        return nodes
+
+    def state_dict(self) -> dict:
+        """The per-element rows and the cuts made, as tensors."""
+        patches = sorted(self.cuts)
+        sizes = torch.tensor([len(self.cuts[p]) for p in patches], dtype=torch.int64)
+        nodes = torch.tensor([n for p in patches for n in self.cuts[p]], dtype=torch.int64)
+        return {"leaf": self.leaf.cpu().clone(), "patch": self.patch.cpu().clone(),
+                "cut_patches": torch.tensor(patches, dtype=torch.int64), "cut_sizes": sizes, "cut_nodes": nodes,
+                "shooter_splits": self.shooter_splits}
+
+    def load_state_dict(self, state: dict, num_elements: int) -> None:
+        """Continue from ``state_dict()``'s output for a mesh of ``num_elements``; ValueError if it does not fit."""
+        leaf, patch = state["leaf"], state["patch"]
+        for name, rows in (("leaf", leaf), ("patch", patch)):
+            if not isinstance(rows, torch.Tensor) or rows.shape != (num_elements,) or rows.dtype != torch.int64:
+                raise ValueError(f"patches.{name} must be a ({num_elements},) int64 tensor")
+        sizes, nodes, patches = state["cut_sizes"], state["cut_nodes"], state["cut_patches"]
+        if int(sizes.sum()) != len(nodes) or len(sizes) != len(patches):
+            raise ValueError("the patches' cuts do not fit together")
+        device = self.leaf.device
+        self._leaf, self._patch = GrowingRows(leaf.to(device)), GrowingRows(patch.to(device))
+        self.cuts = {int(p): part.tolist() for p, part in zip(patches, torch.split(nodes, sizes.tolist()))}
+        self.shooter_splits = int(state["shooter_splits"])
