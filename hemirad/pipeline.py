@@ -285,7 +285,7 @@ def check_before_solving(scene: Scene, mesh: Mesh, solver: ProgressiveSolver) ->
         pick_surface(mesh, scene.refine.view_surface)
     except HemiradInputError as exc:
         raise _key_error(scene, "refine.view_surface", "the name of a surface of the scene",
-                         scene.refine.view_surface, str(exc)) from exc
+                         scene.refine.view_surface, str(exc)[:1].upper() + str(exc)[1:]) from exc
     power = solver.emitted_power.cpu()
     if not (bool(torch.isfinite(power).all()) and bool((power > 0).any())):
         raise _key_error(scene, "materials", "emissions and areas whose emitted power is finite and positive",
