@@ -49,6 +49,9 @@ MAX_QUAD_TWIST = 0.05
 #: times areas for power) must stay a normal 32-bit float in the PLY and glTF outputs.
 MIN_EMISSION, MAX_EMISSION = 1e-20, 1e20
 
+#: The smallest object, as a fraction of the scene's size: 32-bit floats keep about 7 digits.
+MIN_RELATIVE_SIZE = 1e-6
+
 __all__ = ["MAX_TRIANGLES", "SCENES_DIR", "bundled_scenes", "load_scene", "parse_scene"]
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
@@ -175,6 +178,7 @@ class _Reader(Checker):
         # (estimated triangles, key of the element_size that decides them)
         self.estimates: list[tuple[float, str]] = []
         self.sizes: dict[str, float] = {}  # element_size keys and their values
+        self.bounds: list[tuple[str, np.ndarray]] = []  # (key that places an object, (N, 3) its points)
 
     def size(self, v, key: str) -> float:
         return self.bounded(v, key, "a positive element size (scene units)", lambda x: x > 0)
@@ -201,6 +205,7 @@ class _Reader(Checker):
         solver = read_solver(self, top.get("solver", {}))
         refine = read_refine(self, top.get("refine", {}))
         self.check_light(objects)
+        self.check_object_sizes()
         self.check_triangle_budget()
         return Scene(list(self.materials.values()), objects, camera, solver, refine, source)
 
@@ -275,6 +280,7 @@ class _Reader(Checker):
             if not a < b:
                 self.fail(f"{key}.max", "a point above min on every axis", list(hi),
                           f"On axis {'xyz'[axis]}, min is {a:g} and max is {b:g}.")
+        self.bounds.append((f"{key}.max", np.array([lo, hi])))
         return lo, hi
 
     def box_face_estimates(self, lo, hi, sizes: list[tuple[float, str]]):
@@ -341,11 +347,14 @@ class _Reader(Checker):
                       f"The corners lie up to {off_plane.max():.2g} of the quad's size off its mean plane "
                       f"(at most {MAX_QUAD_TWIST:g} is allowed); make it two quads or a mesh.")
         self.estimate(quad_triangles(np.array(corners), size), size, size_key)
+        self.bounds.append((f"{key}.corners", np.array(corners)))
         return Quad(corners, material, size, name)
 
     def read_mesh(self, spec, key, name, material, size, size_key) -> MeshFile:
-        obj, triangles = read_mesh_object(self, spec, key, name, material, size, self.folder, self.folder_shown)
+        obj, triangles, corners = read_mesh_object(self, spec, key, name, material, size, self.folder,
+                                                   self.folder_shown)
         self.estimate(triangles, size, size_key)
+        self.bounds.append((f"{key}.transform" if "transform" in spec else f"{key}.file", corners))
         return obj
 
     # --- whole-scene checks ---
@@ -355,6 +364,17 @@ class _Reader(Checker):
         (an exact integer, however large: the count meshing would make, or its bound)."""
         self.estimates.append((triangles, size_key))
         self.sizes[size_key] = size
+
+    def check_object_sizes(self):
+        """Refuse an object too small beside the scene for 32-bit floats to tell its corners apart."""
+        points = np.concatenate([p for _, p in self.bounds])
+        scene_size = float(np.ptp(points, axis=0).max())
+        for key, p in self.bounds:
+            size = float(np.ptp(p, axis=0).max())
+            if size < MIN_RELATIVE_SIZE * scene_size:
+                self.fail(key, f"an object at least {MIN_RELATIVE_SIZE:g} of the scene's size", hint=(
+                    f"It is {size:.3g} across and the scene {scene_size:.3g}; OpenGL draws in 32-bit floats, "
+                    f"which cannot tell its corners apart."))
 
     def check_light(self, objects: list[SceneObject]):
         used = {o.material for o in objects}

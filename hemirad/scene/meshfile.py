@@ -158,7 +158,8 @@ def subdivided_triangles(vertices: np.ndarray, faces: np.ndarray, element_size: 
 
 def read_mesh_object(check: Checker, spec: dict, key: str, name: str, material: str, size: float,
                      folder: Path, folder_shown: str) -> tuple[MeshFile, float]:
-    """A ``type: mesh`` object, and the number of initial triangles it is estimated to make.
+    """A ``type: mesh`` object, a bound on the initial triangles it makes, and its placed
+    corners (those of the triangles meshing keeps).
 
     Args:
         check: the document's checker; spec: the object's mapping at ``key``.
@@ -188,7 +189,7 @@ def read_mesh_object(check: Checker, spec: dict, key: str, name: str, material: 
         check.fail(f"{key}.file", "a mesh file trimesh can read", file, f"Reading it failed: {exc.reason}.")
     vertices, faces = _usable_triangles(check, contents, file, f"{key}.file", transform)
     obj = MeshFile(path, material, size, tuple(map(tuple, transform.tolist())), crease, name, contents=contents)
-    return obj, subdivided_triangles(vertices, faces, size)
+    return obj, subdivided_triangles(vertices, faces, size), vertices[np.unique(faces)]
 
 
 def _usable_triangles(check: Checker, contents: MeshContents, shown: str, key: str,
