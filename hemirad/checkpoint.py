@@ -16,16 +16,16 @@ old one with ``os.replace``, so a run killed while writing leaves the previous c
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
 import json
-import os
+import math
 from pathlib import Path
 
 import torch
 
-from hemirad.core.errors import HemiradInputError
+from hemirad.core.atomic import write_atomically
+from hemirad.core.errors import HemiradInputError, bounded_repr
 from hemirad.scene.meshfile import cached_contents
 from hemirad.scene.model import MeshFile, Scene
 from hemirad.transport import solver as solver_module
@@ -98,23 +98,10 @@ def write(path, fingerprint: dict, solver_state: dict, run: dict) -> None:
     """
     path = Path(path)
     payload = {"format": FORMAT, "fingerprint": fingerprint, "solver": solver_state, "run": run}
-    # Beside the target (os.replace is atomic only within one file system); the process id
-    # keeps two runs from sharing one; opened normally so the file gets the usual permissions.
-    tmp = path.parent / f".{path.name}.{os.getpid()}.tmp"
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "wb") as f:
-            torch.save(payload, f)
-            f.flush()
-            os.fsync(f.fileno())  # the data must be on disk before the rename makes it the checkpoint
-        os.replace(tmp, path)
-        tmp = None
+        write_atomically(path, lambda f: torch.save(payload, f))
     except OSError as exc:
         raise HemiradInputError(f"could not write the checkpoint {path}: {exc.strerror or exc}.") from exc
-    finally:
-        if tmp is not None:  # interrupted or failed: the previous checkpoint stays as it was
-            with contextlib.suppress(OSError):
-                tmp.unlink()
 
 
 def read(path, fingerprint: dict) -> tuple[dict, dict]:
@@ -147,7 +134,89 @@ def read(path, fingerprint: dict) -> tuple[dict, dict]:
         raise HemiradInputError(f"cannot resume from {path}: it was written for a different run "
                                 f"({'; '.join(differences)}). Resume with the same scene and options, "
                                 f"or start without --resume to begin afresh.")
+    problem = content_problem(payload["solver"], payload["run"])
+    if problem:
+        raise HemiradInputError(f"cannot resume from {path}: its content is damaged ({problem}). {restart}")
     return payload["solver"], payload["run"]
+
+
+def _tensor_problem(value, name: str, shape: tuple, dtype: torch.dtype, ok=None, what: str = "") -> str | None:
+    """What is wrong with a stored tensor: its type, shape (None: any length), dtype, a
+    non-finite value, or a value for which ``ok`` (elementwise) fails (``what`` says the range)."""
+    if not isinstance(value, torch.Tensor):
+        return f"{name} is a {type(value).__name__}, not a tensor"
+    if value.dtype != dtype or value.dim() != len(shape) or any(
+            n is not None and m != n for m, n in zip(value.shape, shape)):
+        return f"{name} is a {tuple(value.shape)} {value.dtype} tensor, not {shape} {dtype}"
+    if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+        return f"{name} holds NaN or infinite values"
+    if ok is not None and value.numel() and not bool(ok(value).all()):
+        return f"{name} holds values outside {what}"
+    return None
+
+
+def _number_problem(value, name: str, lo: float, integer: bool = False) -> str | None:
+    kinds = (int,) if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kinds) or not math.isfinite(value) or value < lo:
+        return f"{name} is {bounded_repr(value)}, not {'an integer' if integer else 'a finite number'} >= {lo:g}"
+    return None
+
+
+def content_problem(state, run) -> str | None:
+    """The first thing wrong with a checkpoint's solver state and run record, checked after
+    unpickling (a file can unpickle safely and still hold a list where a tensor belongs, a
+    negative level or NaN radiosity); None when the content is sound."""
+    if not isinstance(state.get("mesh"), dict):
+        return "the mesh is missing"
+    mesh = state["mesh"]
+    vertices, triangles = mesh.get("vertices"), mesh.get("triangles")
+    problem = (_tensor_problem(vertices, "mesh.vertices", (None, 3), torch.float64)
+               or _tensor_problem(triangles, "mesh.triangles", (None, 3), torch.int64))
+    if problem:
+        return problem
+    V, T = len(vertices), len(triangles)
+    names = mesh.get("surface_names")
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        return "mesh.surface_names is not a list of names"
+    checks = [
+        (triangles, "mesh.triangles", (T, 3), torch.int64, lambda t: (t >= 0) & (t < V), f"[0, {V})"),
+        (mesh.get("surface"), "mesh.surface", (T,), torch.int64, lambda t: (t >= 0) & (t < len(names)),
+         f"[0, {len(names)})"),
+        (mesh.get("material"), "mesh.material", (T,), torch.int64, lambda t: t >= 0, ">= 0"),
+        (mesh.get("level"), "mesh.level", (T,), torch.int64, lambda t: (t >= 0) & (t <= 16), "[0, 16]"),
+        (mesh.get("edge_parents"), "mesh.edge_parents", (V, 2), torch.int64, lambda t: (t >= -1) & (t < V),
+         f"[-1, {V})"),
+        (state.get("reflectance"), "reflectance", (T, 3), torch.float64, lambda t: (t >= 0) & (t < 1), "[0, 1)"),
+        (state.get("emission"), "emission", (T, 3), torch.float64, lambda t: t >= 0, ">= 0"),
+        (state.get("radiosity"), "radiosity", (T, 3), torch.float64, None, ""),
+        (state.get("unshot"), "unshot", (T, 3), torch.float64, None, ""),
+        (state.get("absorbed"), "absorbed", (3,), torch.float64, None, ""),
+        (state.get("escaped"), "escaped", (3,), torch.float64, None, ""),
+        (state.get("emitted_power"), "emitted_power", (3,), torch.float64, lambda t: t >= 0, ">= 0"),
+    ]
+    for check in checks:
+        problem = _tensor_problem(*check)
+        if problem:
+            return problem
+    if not bool((state["emitted_power"] > 0).any()):
+        return "emitted_power is zero: nothing emits"
+    problem = _number_problem(state.get("shots"), "shots", 0, integer=True)
+    refiner = state.get("refiner")
+    if not problem and refiner is not None:
+        if not isinstance(refiner, dict):
+            return f"refiner is a {type(refiner).__name__}, not a mapping"
+        problem = (_number_problem(refiner.get("splits"), "refiner.splits", 0, integer=True)
+                   or _number_problem(refiner.get("threshold"), "refiner.threshold", 0))
+    timings = state.get("timings")
+    if not problem and (not isinstance(timings, dict) or not all(
+            isinstance(k, str) and _number_problem(v, k, 0) is None for k, v in timings.items())):
+        return "timings is not a mapping of phases to seconds"
+    seconds = run.get("seconds")
+    if not problem and not isinstance(seconds, dict):
+        return "run.seconds is not a mapping"
+    return problem or _number_problem(run.get("initial_elements"), "run.initial_elements", 1, integer=True) or \
+        _number_problem(seconds.get("mesh"), "run.seconds.mesh", 0) or \
+        _number_problem(seconds.get("solve"), "run.seconds.solve", 0)
 
 
 def describe_differences(saved: dict, current: dict) -> list[str]:

@@ -165,19 +165,31 @@ class _Progress:
 
 def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     """Solve and write as ``args`` say; ``argv`` (the command line) is echoed in the resume hint."""
-    from hemirad import checkpoint as checkpoints
-    from hemirad.pipeline import prepare_output_folder, solve
+    from hemirad.pipeline import output_lock
 
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
     scene = load_scene(args.scene)
-    overrides = {"max_shots": args.shots, "unshot_fraction": args.unshot_fraction, "resolution": args.resolution,
-                 "device": args.device}
-    scene.solver = replace(scene.solver, **{k: v for k, v in overrides.items() if v is not None})
-    overrides = {"pattern": args.refine, "criterion": args.criterion, "threshold": args.threshold,
-                 "relative": args.relative, "max_depth": args.max_depth, "max_elements": args.max_elements}
-    scene.refine = replace(scene.refine, **{k: v for k, v in overrides.items() if v is not None})
+    solver_options = {"max_shots": ("--shots", args.shots), "unshot_fraction": ("--unshot-fraction",
+                      args.unshot_fraction), "resolution": ("--resolution", args.resolution),
+                      "device": ("--device", args.device)}
+    refine_options = {"pattern": ("--refine", args.refine), "criterion": ("--criterion", args.criterion),
+                      "threshold": ("--threshold", args.threshold),
+                      "relative": ("--relative" if args.relative else "--absolute", args.relative),
+                      "max_depth": ("--max-depth", args.max_depth), "max_elements": ("--max-elements", args.max_elements)}
+    for block, options in (("solver", solver_options), ("refine", refine_options)):
+        given = {k: v for k, (_, v) in options.items() if v is not None}
+        setattr(scene, block, replace(getattr(scene, block), **given))
+        scene.command_line.update({f"{block}.{k}": options[k][0] for k in given})
     name = scene.source.stem if scene.source else str(args.scene)
-    output = prepare_output_folder(args.output or Path(f"{name}_out"))  # fail before solving, not after
+    # Held until the outputs are written: checked (and a second run refused) before solving, not after.
+    with output_lock(args.output or Path(f"{name}_out")) as output:
+        return _solve_and_write(args, argv, scene, output, say)
+
+
+def _solve_and_write(args: argparse.Namespace, argv: list[str] | None, scene, output: Path, say) -> int:
+    from hemirad import checkpoint as checkpoints
+    from hemirad.pipeline import solve
+
     checkpoint = output / checkpoints.FILENAME if (args.checkpoint_every or args.resume) else None
     # Printed with the first shot: errors found while setting up then stay a single paragraph.
     header = (f"hemirad: solving {scene.source or args.scene} (up to {scene.solver.max_shots} shots, "

@@ -9,6 +9,9 @@
 """
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -21,8 +24,9 @@ import torch
 from hemirad import checkpoint as checkpoints
 from hemirad.adaptive.refine import Refiner
 from hemirad.adaptive.shooter_split import point_source_test
+from hemirad.core.atomic import remove_stale_temporaries
 from hemirad.core.device import select_device
-from hemirad.core.errors import HemiradInputError, SceneError
+from hemirad.core.errors import HemiradInputError, SceneError, bounded_repr
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patches import build_patches
 from hemirad.geometry.split import angle_quality
@@ -30,10 +34,15 @@ from hemirad.output import display, export, gltf
 from hemirad.output.meshview import pick_surface, surface_view
 from hemirad.output.render import render_view
 from hemirad.scene.meshing import build_mesh
-from hemirad.scene.model import Scene
+from hemirad.scene.model import Camera, Scene
 from hemirad.transport.gl import GLContext, check_image_size
 from hemirad.transport.shooters import PatchShooters
 from hemirad.transport.solver import ProgressiveSolver, ShotReport, ambient_term
+
+
+#: The files ``Result.write`` makes in an output folder, by kind.
+OUTPUT_FILES = {"image": "image.png", "mesh view": "mesh.png", "mesh": "mesh.ply", "glTF": "mesh.glb",
+                "stats": "stats.json"}
 
 
 @dataclass
@@ -100,15 +109,20 @@ class Result:
 
     def write(self, folder) -> dict[str, Path]:
         """Write image.png, mesh.png, mesh.ply, mesh.glb and stats.json into ``folder`` (made if
-        missing); returns their paths by kind. Raises HemiradInputError if it cannot write."""
-        folder = prepare_output_folder(folder)
-        paths = {"image": folder / "image.png", "mesh view": folder / "mesh.png",
-                 "mesh": folder / "mesh.ply", "glTF": folder / "mesh.glb", "stats": folder / "stats.json"}
+        missing), each atomically, under the folder's lock (``output_lock``); returns their
+        paths by kind. Raises HemiradInputError if it cannot write, another run holds the
+        folder, or a result is not finite (then nothing is written)."""
+        with output_lock(folder) as folder:
+            return self._write(folder)
+
+    def _write(self, folder: Path) -> dict[str, Path]:
+        paths = {kind: folder / name for kind, name in OUTPUT_FILES.items()}
+        vertex = self.vertex_radiosity()
+        check_finite(self, vertex)  # before anything is written
         start = time.perf_counter()
         export.write_png(paths["image"], self.image())
         export.write_png(paths["mesh view"], self.mesh_image())
         rendered = time.perf_counter()
-        vertex = self.vertex_radiosity()
         export.write_ply(paths["mesh"], self.mesh, vertex, display.to_srgb8(vertex.numpy(), self.exposure()))
         self.write_glb(paths["glTF"], vertex)
         self.stats.setdefault("seconds", {}).update(
@@ -167,22 +181,34 @@ def _restore(solver: ProgressiveSolver, state: dict, run: dict, path, initial_el
 
 def check_gl_limits(scene: Scene, gpu: bool = False) -> None:
     """Refuse, before any work, sizes the OpenGL framebuffers cannot hold: the hemicube atlas
-    (R x 3R) and the supersampled camera image. Otherwise the image would fail only after
-    the whole solve. ``gpu``: the solve draws with the GPU's context (made here if none is)."""
-    file = str(scene.source) if scene.source else "<scene>"
+    (R x 3R) and the supersampled camera image (tried, since a side within the limit may
+    still be too large a framebuffer). Otherwise the image would fail only after the whole
+    solve. ``gpu``: the solve draws with the GPU's context (made here if none is)."""
     r = scene.solver.resolution
-    check_image_size(3 * r, lambda limit: SceneError(
-        file, "solver.resolution", f"at most {limit // 6 * 2} (the hemicube is drawn into an "
+    check_image_size(3 * r, lambda limit: _key_error(
+        scene, "solver.resolution", f"at most {limit // 6 * 2} (the hemicube is drawn into an "
         f"R x 3R image, and OpenGL allows {limit} pixels a side here)", r), gpu)
     cam = scene.camera
-    check_image_size(max(cam.width, cam.height) * cam.supersample, lambda limit: SceneError(
-        file, "camera.supersample", f"a camera size that, times supersample, stays within "
-        f"OpenGL's {limit} pixels a side", cam.supersample,
-        f"The camera is {cam.width} x {cam.height}; lower supersample or the size."), gpu)
+    # the supersample when the scene changed it, else the larger side
+    key = "camera.supersample" if cam.supersample != Camera.supersample else \
+        ("camera.width" if cam.width >= cam.height else "camera.height")
+    got = {"camera.supersample": cam.supersample, "camera.width": cam.width, "camera.height": cam.height}[key]
+
+    def refusal(limit: int) -> HemiradInputError:
+        return _key_error(scene, key, f"a camera size that, times supersample, OpenGL can draw here "
+                          f"(at most {limit} pixels a side, and a framebuffer this machine can make)", got,
+                          f"The camera is {cam.width} x {cam.height} at supersample {cam.supersample}, "
+                          f"{cam.width * cam.supersample} x {cam.height * cam.supersample} pixels; "
+                          f"lower supersample or the size.")
+
+    check_image_size(max(cam.width, cam.height) * cam.supersample, refusal, gpu)
+    if not GLContext.framebuffer_fits(cam.width * cam.supersample, cam.height * cam.supersample, gpu):
+        raise refusal(GLContext.max_image_size(gpu))
 
 
 def prepare_output_folder(folder) -> Path:
-    """Create ``folder`` (and its parents) if needed; HemiradInputError when it cannot be written."""
+    """Create ``folder`` (and its parents) if needed; HemiradInputError when it cannot be
+    written, or when one of the files a run writes there is a folder (or not a file)."""
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -190,7 +216,90 @@ def prepare_output_folder(folder) -> Path:
         raise HemiradInputError(f"cannot create the output folder {folder}: {exc.strerror or exc}.") from exc
     if not os.access(folder, os.W_OK):
         raise HemiradInputError(f"the output folder {folder} is not writable.")
+    for name in (*OUTPUT_FILES.values(), checkpoints.FILENAME):
+        path = folder / name
+        if path.exists() and not path.is_file():
+            raise HemiradInputError(f"cannot write {path}: it exists and is not a regular file "
+                                    f"({'a folder' if path.is_dir() else 'a special file'}); move it away "
+                                    f"or choose another output folder.")
     return folder
+
+
+_LOCK_NAME = ".hemirad.lock"
+_held: dict[Path, object] = {}  # output folders this process holds the lock of
+
+
+@contextlib.contextmanager
+def output_lock(folder):
+    """Hold ``folder`` (prepared, see ``prepare_output_folder``) for one run: a second run
+    writing there is refused (HemiradInputError) until this one ends, and the temporary
+    files a killed run left there are removed. Re-entrant within a process; yields the folder."""
+    folder = prepare_output_folder(folder)
+    key = folder.resolve()
+    if key in _held:
+        yield folder
+        return
+    try:
+        handle = open(folder / _LOCK_NAME, "a")
+    except OSError as exc:
+        raise HemiradInputError(f"cannot lock the output folder {folder}: {exc.strerror or exc}.") from exc
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            raise HemiradInputError(f"another hemirad run is writing to the output folder {folder}; wait for "
+                                    f"it to finish or choose another folder (-o).") from exc
+        _held[key] = handle
+        try:
+            remove_stale_temporaries(folder, (*OUTPUT_FILES.values(), checkpoints.FILENAME))
+            yield folder
+        finally:
+            del _held[key]
+    finally:
+        handle.close()  # releases the lock
+
+
+def check_finite(result: "Result", vertex_radiosity: torch.Tensor) -> None:
+    """Refuse to write a result holding NaN or infinity, or radiosity too large for the
+    outputs' 32-bit floats (extreme emissions or sizes): HemiradInputError, nothing written."""
+    limit = float(np.finfo(np.float32).max)
+    for name, values in (("element radiosity", result.display_radiosity), ("vertex radiosity", vertex_radiosity)):
+        bad = ~torch.isfinite(values).all(dim=1) | (values.abs() > limit).any(dim=1)
+        if bool(bad.any()):
+            raise HemiradInputError(
+                f"the solve's {name} is not finite, or too large for a 32-bit float, at {int(bad.sum())} of "
+                f"{len(values)} places; the scene's emissions or sizes are too extreme to compute with. "
+                f"Nothing was written.")
+    exposure = result.exposure()
+    if not (math.isfinite(exposure) and exposure > 0):
+        raise HemiradInputError(f"the image's exposure comes out as {exposure!r}: the scene's radiosity is too "
+                                f"small or too large to show. Set camera.exposure, or scale the emissions. "
+                                f"Nothing was written.")
+
+
+def _key_error(scene: Scene, key: str, expected: str, got: object = ..., hint: str = "") -> HemiradInputError:
+    """The error about ``key`` of ``scene``: naming the scene file, or the command-line
+    option when that is where the value came from (``Scene.command_line``)."""
+    option = scene.command_line.get(key)
+    if option is None:
+        return SceneError(str(scene.source) if scene.source else "<scene>", key, expected, got, hint)
+    shown = f", got {bounded_repr(got)}" if got is not ... else ""
+    return HemiradInputError(f"{option} (given on the command line, for {key}): expected {expected}{shown}. {hint}")
+
+
+def check_before_solving(scene: Scene, mesh: Mesh, solver: ProgressiveSolver) -> None:
+    """What can only be checked once the scene is meshed, checked before any shot: the
+    surface ``refine.view_surface`` names, and an emitted power that is finite and positive."""
+    try:
+        pick_surface(mesh, scene.refine.view_surface)
+    except HemiradInputError as exc:
+        raise _key_error(scene, "refine.view_surface", "the name of a surface of the scene",
+                         scene.refine.view_surface, str(exc)[:1].upper() + str(exc)[1:]) from exc
+    power = solver.emitted_power.cpu()
+    if not (bool(torch.isfinite(power).all()) and bool((power > 0).any())):
+        raise _key_error(scene, "materials", "emissions and areas whose emitted power is finite and positive",
+                         hint=f"The emitting surfaces give a power of {power.tolist()}: the emissions or "
+                              f"the emitters' sizes are too extreme to compute with.")
 
 
 def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, checkpoint=None,
@@ -223,6 +332,10 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
         fingerprint = checkpoints.fingerprint(scene)
         if resume:  # read before meshing, so that a wrong checkpoint fails fast
             saved = checkpoints.read(checkpoint, fingerprint)
+            if saved[0]["shots"] > options.max_shots:  # it would report more shots than asked for
+                raise _key_error(scene, "solver.max_shots", f"at least the {saved[0]['shots']} shots the "
+                                 f"checkpoint {checkpoint} already holds, to resume it", options.max_shots,
+                                 "A resumed run only adds shots; start without --resume for a shorter run.")
     start = time.perf_counter()
     mesh = build_mesh(scene)
     meshed = time.perf_counter()
@@ -232,6 +345,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     before = {"mesh": 0.0, "solve": 0.0}  # seconds spent by the runs this one continues
     resumed_from = None
     try:
+        check_before_solving(scene, mesh, solver)
         if saved is not None:
             before = _restore(solver, *saved, checkpoint, mesh.num_elements)
             resumed_from = solver.state.shots

@@ -2,13 +2,17 @@
 raises ``HemiradInputError`` (which the command line shows as one paragraph); any other
 exception would reach the user as a traceback.
 
-Three sources of documents: random nested data over the scene vocabulary, random edits
-of the bundled scenes' parsed data, and random edits of their text.
+Five sources of documents: random nested data over the scene vocabulary (with huge, tiny
+and non-finite numbers), random edits of the bundled scenes' parsed data (with shared and
+self-containing values, as YAML aliases make), random edits of their text, YAML text with
+anchors, aliases, merge keys, deep nesting and numbers of thousands of digits put into a
+working scene, and alias bombs; the last two in bounded time.
 """
 from __future__ import annotations
 
 import copy
 import math
+import time
 from pathlib import Path
 
 import pytest
@@ -44,6 +48,9 @@ scalars = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
     st.sampled_from([0, 1, 2, 0.5, 1e-300, 1e300, -1]),
     st.sampled_from(WORDS), st.text(max_size=8),
+    # huge, tiny and non-finite numbers: none may reach a message or a check unbounded
+    st.sampled_from([5e-324, 1e-320, 1e308, -1e308, 1e39, 1e15 + 1, math.nan, math.inf]),
+    st.sampled_from([1, -1]).map(lambda sign: sign * 10**5000),  # built late: hypothesis cannot print it
 )
 keys = st.one_of(st.sampled_from(KEYS), st.text(max_size=6), st.integers(-3, 3))
 documents = st.recursive(
@@ -170,3 +177,77 @@ def test_random_bytes_as_a_scene_file_raise_an_input_error(scene_folder, data):
         pass
     else:
         pytest.fail("random bytes made a scene")  # they cannot hold materials, objects and camera
+
+
+@FUZZ
+@given(st.sampled_from(KEYS), documents, st.integers(0, 2))
+def test_shared_and_self_containing_values_load_or_raise_an_input_error(key, value, how):
+    """What YAML aliases build: one object at several places, or inside itself."""
+    doc = copy.deepcopy(DOCUMENTS[-1][1])
+    if how == 0:
+        shared = [value, value]
+        doc[key] = [shared, shared, {"material": shared}]
+    elif how == 1:
+        looped = {"type": "quad", "material": "white"}
+        looped["corners"] = [looped] * 4
+        doc["objects"] = list(doc["objects"]) + [looped]
+        doc[key] = {"x": looped, "objects": [looped]}
+    else:
+        looped_list: list = [value]
+        looped_list.append(looped_list)
+        doc[key] = looped_list
+    loads_or_refuses(doc)
+
+
+# YAML text: anchors (&a, &b), aliases (*a, *b, possibly before their anchor), merge keys,
+# nesting, and numbers YAML reads but no float holds.
+yaml_leaves = st.sampled_from(["1", "0.5", "-0.0", "1e400", "-1e400", ".nan", ".inf", "-.inf", "5e-324", "1.0e308",
+                               "9" * 500, "9" * 5000, "-" + "1" * 4400, "0x" + "f" * 300, "'x'", "room.floor", "lamp",
+                               "white", "*a", "*b", "[]", "{}", "true", "null"])
+yaml_keys = st.sampled_from(KEYS + ["<<", "<<", "x"])
+yaml_texts = st.recursive(
+    yaml_leaves,
+    lambda inner: st.one_of(
+        st.lists(inner, max_size=5).map(lambda items: "[" + ", ".join(items) + "]"),
+        st.lists(st.tuples(yaml_keys, inner), max_size=5).map(
+            lambda pairs: "{" + ", ".join(f"{k}: {v}" for k, v in pairs) + "}"),
+        st.tuples(st.sampled_from(["&a ", "&b "]), inner).map("".join),
+    ),
+    max_leaves=30,
+)
+TOP_LINES = ("element_size", "materials", "camera", "solver", "objects")
+
+
+def _replace_top_line(text: str, key: str, value: str) -> str:
+    lines = text.splitlines()
+    return "\n".join(f"{key}: {value}" if line.startswith(f"{key}:") else line for line in lines) + "\n"
+
+
+def _refused_quickly(scene_folder, text: str) -> None:
+    path = scene_folder / "text.yaml"
+    path.write_text(text)
+    start = time.perf_counter()
+    try:
+        load_scene(path)
+    except HemiradInputError as exc:
+        assert str(path) in str(exc) and "\n" not in str(exc) and len(str(exc)) <= 2000
+    assert time.perf_counter() - start < 5
+
+
+@FUZZ
+@given(st.sampled_from(TOP_LINES), yaml_texts, st.integers(0, 300))
+def test_yaml_with_aliases_merge_keys_nesting_and_huge_numbers(scene_folder, key, value, depth):
+    base = (Path(__file__).parent / "bad_inputs" / "base.yaml").read_text()
+    if depth > 100:  # nested far past the limit, around the value
+        value = "[" * depth + value + "]" * depth
+    _refused_quickly(scene_folder, _replace_top_line(base, key, value))
+
+
+@FUZZ
+@given(st.integers(2, 40), st.integers(1, 12), st.sampled_from(TOP_LINES))
+def test_alias_bombs_are_refused_in_bounded_time(scene_folder, fan_out, levels, key):
+    base = (Path(__file__).parent / "bad_inputs" / "base.yaml").read_text()
+    lines = ["  v0: &l0 [" + ", ".join(["x"] * fan_out) + "]"]
+    lines += [f"  v{i}: &l{i} [" + ", ".join([f"*l{i - 1}"] * fan_out) + "]" for i in range(1, levels + 1)]
+    value = "\n" + "\n".join(lines)
+    _refused_quickly(scene_folder, _replace_top_line(base, key, value))

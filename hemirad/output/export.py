@@ -15,6 +15,7 @@ import torch
 import trimesh
 from PIL import Image
 
+from hemirad.core.atomic import write_atomically
 from hemirad.core.errors import HemiradInputError
 from hemirad.geometry.mesh import Mesh
 
@@ -27,10 +28,10 @@ def _as_numpy(x) -> np.ndarray:
 
 
 def _write_bytes(path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically: a failed write leaves the previous file, or none."""
     path = Path(path)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_bytes(data)
+        write_atomically(path, lambda f: f.write(data))
     except OSError as exc:
         raise HemiradInputError(f"could not write {path}: {exc.strerror or exc}.") from exc
 

@@ -31,9 +31,17 @@ def is_finite(v: int | float) -> bool:
         return False
 
 
+#: Coordinates (and other lengths) beyond this are refused: OpenGL draws in 32-bit floats, and
+#: differences of larger numbers lose every digit a scene's detail needs.
+MAX_COORDINATE = 1e15
+
+
 def closest(value: object, options: Iterable[str]) -> str | None:
-    """The option ``value`` most likely misspells, or None when none is close."""
-    close = difflib.get_close_matches(str(value), list(options), n=1)
+    """The option ``value`` most likely misspells, or None when none is close (or it is no
+    short string: a name is never a number, a list or a paragraph)."""
+    if not isinstance(value, str) or len(value) > 100:
+        return None
+    close = difflib.get_close_matches(value, list(options), n=1)
     return close[0] if close else None
 
 
@@ -99,6 +107,15 @@ class Checker:
         if not isinstance(v, int) or isinstance(v, bool) or v < lo or (hi is not None and v > hi):
             self.fail(key, expected, v, _bool_hint(v))
         return int(v)
+
+    def point(self, v, key: str, expected: str = "three numbers [x, y, z]") -> tuple[float, float, float]:
+        """A position: three numbers, none larger in size than ``MAX_COORDINATE``."""
+        p = self.vec3(v, key, expected)
+        for i, x in enumerate(p):
+            if abs(x) > MAX_COORDINATE:
+                self.fail(f"{key}[{i}]", f"a coordinate within +-{MAX_COORDINATE:g}", x,
+                          "OpenGL draws in 32-bit floats; move the scene nearer the origin or use larger units.")
+        return p
 
     def vec3(self, v, key: str, expected: str = "three numbers [x, y, z]") -> tuple[float, float, float]:
         if not isinstance(v, (list, tuple)) or len(v) != 3:

@@ -28,7 +28,6 @@ This module reads the top level, materials and objects; the checks of single val
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
@@ -37,9 +36,21 @@ import numpy as np
 from hemirad.core.errors import SceneError
 from hemirad.scene.keys import Checker, closest, did_you_mean, join
 from hemirad.scene.meshfile import read_mesh_object
+from hemirad.scene.meshing import box_face_corners, quad_triangles
 from hemirad.scene.model import Box, FaceOverride, Material, MeshFile, Quad, Room, Scene, SceneObject
 from hemirad.scene.options import MAX_TRIANGLES, read_camera, read_refine, read_solver
 from hemirad.scene.yamlfile import parse_yaml
+
+#: How far (a fraction of its size) a quad's corners may lie off their mean plane. The
+#: mesher follows a slight twist (the Cornell box's red wall is 0.0014 off), not a fold.
+MAX_QUAD_TWIST = 0.05
+
+#: The emission a material may have, besides 0: radiosity (up to emission / (1 - reflectance),
+#: times areas for power) must stay a normal 32-bit float in the PLY and glTF outputs.
+MIN_EMISSION, MAX_EMISSION = 1e-20, 1e20
+
+#: The smallest object, as a fraction of the scene's size: 32-bit floats keep about 7 digits.
+MIN_RELATIVE_SIZE = 1e-6
 
 __all__ = ["MAX_TRIANGLES", "SCENES_DIR", "bundled_scenes", "load_scene", "parse_scene"]
 
@@ -128,7 +139,8 @@ def parse_scene(data: Any, file: str = "<scene>", folder: str | Path = ".",
         source: stored as ``Scene.source``.
     """
     reader = _Reader(file, Path(folder), folder_shown if folder_shown is not None else str(folder))
-    return reader.scene(data, source)
+    with np.errstate(all="ignore"):  # extreme numbers are refused by the checks, not warned about
+        return reader.scene(data, source)
 
 
 # ----------------------------------------------------------------------------------------
@@ -166,6 +178,7 @@ class _Reader(Checker):
         # (estimated triangles, key of the element_size that decides them)
         self.estimates: list[tuple[float, str]] = []
         self.sizes: dict[str, float] = {}  # element_size keys and their values
+        self.bounds: list[tuple[str, np.ndarray]] = []  # (key that places an object, (N, 3) its points)
 
     def size(self, v, key: str) -> float:
         return self.bounded(v, key, "a positive element size (scene units)", lambda x: x > 0)
@@ -192,6 +205,7 @@ class _Reader(Checker):
         solver = read_solver(self, top.get("solver", {}))
         refine = read_refine(self, top.get("refine", {}))
         self.check_light(objects)
+        self.check_object_sizes()
         self.check_triangle_budget()
         return Scene(list(self.materials.values()), objects, camera, solver, refine, source)
 
@@ -211,7 +225,9 @@ class _Reader(Checker):
             emission = (0.0, 0.0, 0.0)
             if "emission" in spec:
                 emission = self.rgb(spec["emission"], f"{key}.emission",
-                                    "three finite numbers >= 0 or one number", lambda x: x >= 0.0)
+                                    f"three finite numbers >= 0 or one number (each 0 or from {MIN_EMISSION:g} "
+                                    f"to {MAX_EMISSION:g}, so that radiosity fits the outputs' 32-bit floats)",
+                                    lambda x: x == 0.0 or MIN_EMISSION <= x <= MAX_EMISSION)
             self.materials[name] = Material(name, rho, emission)
 
     def read_objects(self, v) -> list[SceneObject]:
@@ -259,19 +275,19 @@ class _Reader(Checker):
         return self.default_size, "element_size"
 
     def min_max(self, spec: dict, key: str):
-        lo, hi = self.vec3(spec["min"], f"{key}.min"), self.vec3(spec["max"], f"{key}.max")
+        lo, hi = self.point(spec["min"], f"{key}.min"), self.point(spec["max"], f"{key}.max")
         for axis, (a, b) in enumerate(zip(lo, hi)):
             if not a < b:
                 self.fail(f"{key}.max", "a point above min on every axis", list(hi),
                           f"On axis {'xyz'[axis]}, min is {a:g} and max is {b:g}.")
+        self.bounds.append((f"{key}.max", np.array([lo, hi])))
         return lo, hi
 
     def box_face_estimates(self, lo, hi, sizes: list[tuple[float, str]]):
-        """Adds the estimate of each of six faces; sizes in Room.FACE_NAMES order."""
-        dx, dy, dz = (b - a for a, b in zip(lo, hi))
-        areas = (dx * dz, dx * dz, dy * dz, dy * dz, dx * dy, dx * dy)
-        for area, (size, size_key) in zip(areas, sizes):
-            self.estimate(2.0 * area / size / size, size, size_key)
+        """Adds the triangle count of each of six faces; sizes in Room.FACE_NAMES order."""
+        for face, (size, size_key) in zip(Room.FACE_NAMES, sizes):
+            corners = box_face_corners(lo, hi, face, inward=True).numpy()
+            self.estimate(quad_triangles(corners, size), size, size_key)
 
     def read_room(self, spec, key, name, material, size, size_key) -> Room:
         lo, hi = self.min_max(spec, key)
@@ -299,41 +315,66 @@ class _Reader(Checker):
         return Box(lo, hi, material, size, name)
 
     def read_quad(self, spec, key, name, material, size, size_key) -> Quad:
-        expected = "four corners [[x, y, z], ...] of a convex quadrilateral, in order around it"
+        expected = "four corners [[x, y, z], ...] of a convex planar quadrilateral, in order around it"
         v = spec["corners"]
         if not isinstance(v, list) or len(v) != 4:
             self.fail(f"{key}.corners", expected, v)
-        corners = tuple(self.vec3(c, f"{key}.corners[{i}]") for i, c in enumerate(v))
+        corners = tuple(self.point(c, f"{key}.corners[{i}]") for i, c in enumerate(v))
         c = np.array(corners)
         extent = float(np.ptp(c, axis=0).max())
+        if extent <= 1e-9 * float(np.abs(c).max()):
+            self.fail(f"{key}.corners", expected, v, "The corners coincide (to the precision of their coordinates).")
+        # The shape tests are made on the quad scaled to size 1: a tiny (or huge) quad is
+        # the same quad, and its squared lengths must not underflow to "collinear".
+        c = (c - c[0]) / extent
         for i in range(4):
             for j in range(i + 1, 4):
-                if np.linalg.norm(c[i] - c[j]) <= 1e-9 * extent:
+                if np.linalg.norm(c[i] - c[j]) <= 1e-9:
                     self.fail(f"{key}.corners", expected, v, f"Corners {i} and {j} coincide.")
         # Each corner triangle must turn the same way as the whole quad: this refuses
         # collinear corners, bow-ties (corners out of order) and concave quads, all of
         # which fold the bilinear grid the mesher lays over the quad.
         normals = _quad_triangle_normals(c)
-        if (np.linalg.norm(normals, axis=1) <= 1e-9 * extent**2).any():
+        if (np.linalg.norm(normals, axis=1) <= 1e-9).any():
             self.fail(f"{key}.corners", expected, v, "Three of the corners are collinear.")
         vector_area = np.cross(c[2] - c[0], c[3] - c[1])
         if (normals @ vector_area <= 0).any():
             self.fail(f"{key}.corners", expected, v,
                       "The corners are out of order (a bow-tie) or make a concave shape.")
-        self.estimate(float(np.linalg.norm(vector_area)) / size / size, size, size_key)  # 2 * area / size^2
+        off_plane = np.abs((c - c.mean(axis=0)) @ (vector_area / np.linalg.norm(vector_area)))
+        if off_plane.max() > MAX_QUAD_TWIST:
+            self.fail(f"{key}.corners", expected, v,
+                      f"The corners lie up to {off_plane.max():.2g} of the quad's size off its mean plane "
+                      f"(at most {MAX_QUAD_TWIST:g} is allowed); make it two quads or a mesh.")
+        self.estimate(quad_triangles(np.array(corners), size), size, size_key)
+        self.bounds.append((f"{key}.corners", np.array(corners)))
         return Quad(corners, material, size, name)
 
     def read_mesh(self, spec, key, name, material, size, size_key) -> MeshFile:
-        obj, triangles = read_mesh_object(self, spec, key, name, material, size, self.folder, self.folder_shown)
+        obj, triangles, corners = read_mesh_object(self, spec, key, name, material, size, self.folder,
+                                                   self.folder_shown)
         self.estimate(triangles, size, size_key)
+        self.bounds.append((f"{key}.transform" if "transform" in spec else f"{key}.file", corners))
         return obj
 
     # --- whole-scene checks ---
 
-    def estimate(self, triangles: float, size: float, size_key: str):
-        """Record that ``triangles`` initial triangles come from the element size at ``size_key``."""
+    def estimate(self, triangles: int, size: float, size_key: str):
+        """Record that ``triangles`` initial triangles come from the element size at ``size_key``
+        (an exact integer, however large: the count meshing would make, or its bound)."""
         self.estimates.append((triangles, size_key))
         self.sizes[size_key] = size
+
+    def check_object_sizes(self):
+        """Refuse an object too small beside the scene for 32-bit floats to tell its corners apart."""
+        points = np.concatenate([p for _, p in self.bounds])
+        scene_size = float(np.ptp(points, axis=0).max())
+        for key, p in self.bounds:
+            size = float(np.ptp(p, axis=0).max())
+            if size < MIN_RELATIVE_SIZE * scene_size:
+                self.fail(key, f"an object at least {MIN_RELATIVE_SIZE:g} of the scene's size", hint=(
+                    f"It is {size:.3g} across and the scene {scene_size:.3g}; OpenGL draws in 32-bit floats, "
+                    f"which cannot tell its corners apart."))
 
     def check_light(self, objects: list[SceneObject]):
         used = {o.material for o in objects}
@@ -352,16 +393,16 @@ class _Reader(Checker):
         total = sum(n for n, _ in self.estimates)
         if total <= MAX_TRIANGLES:
             return
-        by_key: dict[str, float] = {}
+        by_key: dict[str, int] = {}
         for n, k in self.estimates:
-            by_key[k] = by_key.get(k, 0.0) + n
+            by_key[k] = by_key.get(k, 0) + n
         key = max(by_key, key=by_key.get)
         self.fail(key, f"an element size that keeps the scene under {MAX_TRIANGLES:,} triangles",
                   self.sizes[key],
-                  hint=f"The scene would start with about {_count(total)} triangles, {_count(by_key[key])} of them "
+                  hint=f"The scene would start with {_count(total)} triangles, {_count(by_key[key])} of them "
                        f"from this element size; make it larger.")
 
 
-def _count(n: float) -> str:
-    """A triangle estimate for a message; a size near 1e-200 makes it overflow to infinity."""
-    return f"{n:,.0f}" if math.isfinite(n) else "more than 1e308"
+def _count(n: int) -> str:
+    """A triangle count for a message, however many digits it has: ``about 12,345`` or ``more than 10^42``."""
+    return f"about {n:,}" if n < 10**12 else f"more than 10^{len(str(n)) - 1}"

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +41,24 @@ class _Surface:
 
 
 def _cells(length: float, element_size: float) -> int:
-    return max(1, math.ceil(length / element_size - _CELL_SLACK))
+    ratio = length / element_size
+    if not math.isfinite(ratio):  # past 1e308 cells: counted exactly, only ever to be refused
+        return max(1, math.ceil(Fraction(length) / Fraction(element_size)))
+    return max(1, math.ceil(ratio - _CELL_SLACK))
+
+
+def _quad_cells(c: torch.Tensor, element_size: float) -> tuple[int, int]:
+    """The grid ``grid_quad`` lays over the quad ``c`` (4, 3): cells along edge 01 and edge 03."""
+    nu = _cells(max(float((c[1] - c[0]).norm()), float((c[2] - c[3]).norm())), element_size)
+    nv = _cells(max(float((c[3] - c[0]).norm()), float((c[2] - c[1]).norm())), element_size)
+    return nu, nv
+
+
+def quad_triangles(corners, element_size: float) -> int:
+    """How many triangles ``grid_quad`` makes of a quad, counted without making them (an
+    exact integer, however large: a long thin quad at a small size makes a great many)."""
+    nu, nv = _quad_cells(torch.as_tensor(corners, dtype=torch.float64).reshape(4, 3), element_size)
+    return 2 * nu * nv
 
 
 def grid_quad(corners: torch.Tensor, element_size: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -63,8 +81,7 @@ def grid_quad(corners: torch.Tensor, element_size: float) -> tuple[torch.Tensor,
     if not element_size > 0:
         raise ValueError(f"element_size must be positive, got {element_size}")
     c = torch.as_tensor(corners, dtype=torch.float64).reshape(4, 3)
-    nu = _cells(max(float((c[1] - c[0]).norm()), float((c[2] - c[3]).norm())), element_size)
-    nv = _cells(max(float((c[3] - c[0]).norm()), float((c[2] - c[1]).norm())), element_size)
+    nu, nv = _quad_cells(c, element_size)
 
     u = torch.linspace(0.0, 1.0, nu + 1, dtype=torch.float64)
     v = torch.linspace(0.0, 1.0, nv + 1, dtype=torch.float64)

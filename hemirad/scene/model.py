@@ -147,6 +147,9 @@ class Scene:
     solver: SolverOptions = field(default_factory=SolverOptions)
     refine: RefineOptions = field(default_factory=RefineOptions)
     source: Path | None = None  # the file it was read from
+    # Keys whose value a command-line option set, e.g. {"solver.resolution": "--resolution"}:
+    # an error about such a value names the option, not the scene file.
+    command_line: dict[str, str] = field(default_factory=dict)
 
     def with_element_sizes_scaled(self, factor: float) -> "Scene":
         """A copy of the scene with every element size (room faces' too) times ``factor``."""

@@ -19,12 +19,16 @@ _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "m
 
 def read_camera(check: Checker, v) -> Camera:
     m = check.section(v, "camera", check.required_what["camera"], _CAMERA_KEYS, ("position", "look_at"))
-    position, look_at = check.vec3(m["position"], "camera.position"), check.vec3(m["look_at"], "camera.look_at")
+    position, look_at = check.point(m["position"], "camera.position"), check.point(m["look_at"], "camera.look_at")
     up = check.vec3(m["up"], "camera.up") if "up" in m else (0.0, 1.0, 0.0)
     view = np.subtract(look_at, position)
-    if np.linalg.norm(view) == 0:
+    if np.linalg.norm(view) <= 1e-12 * max(np.abs(position).max(), np.abs(look_at).max()):
         check.fail("camera.look_at", "a point different from camera.position", list(look_at))
-    if np.linalg.norm(np.cross(view, up)) <= 1e-9 * np.linalg.norm(view) * np.linalg.norm(up):
+    if not any(up):
+        check.fail("camera.up", "a non-zero direction", list(up))
+    # Compared as unit vectors: the lengths (1e-200 or 1e300) must not underflow or overflow.
+    view, up_dir = view / np.abs(view).max(), np.divide(up, np.abs(up).max())
+    if np.linalg.norm(np.cross(view, up_dir)) <= 1e-9 * np.linalg.norm(view) * np.linalg.norm(up_dir):
         check.fail("camera.up", "a direction not parallel to the viewing direction", list(up))
     cam = Camera(position, look_at, up)
     if "fov" in m:
@@ -45,7 +49,7 @@ def read_solver(check: Checker, v) -> SolverOptions:
     m = check.section(v, "solver", "a mapping of solver options", _SOLVER_KEYS)
     opts = SolverOptions()
     if "max_shots" in m:
-        opts.max_shots = check.integer(m["max_shots"], "solver.max_shots", "a whole number >= 0", 0)
+        opts.max_shots = check.integer(m["max_shots"], "solver.max_shots", "a whole number >= 1", 1)
     if "unshot_fraction" in m:
         opts.unshot_fraction = check.bounded(m["unshot_fraction"], "solver.unshot_fraction", "a number in [0, 1)",
                                              lambda x: 0 <= x < 1)

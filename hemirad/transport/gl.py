@@ -70,6 +70,25 @@ class GLContext:
         return int(cls.get(gpu).info.get("GL_MAX_RENDERBUFFER_SIZE", 4096))
 
 
+    @classmethod
+    def framebuffer_fits(cls, width: int, height: int, gpu: bool = False) -> bool:
+        """Whether a float RGBA framebuffer with a depth buffer, ``width`` x ``height``, can be
+        made here: a side within the limit is not enough (Mesa's llvmpipe refuses one of
+        12288 x 12288 though its limit is 16384). Made and released, to know for sure."""
+        ctx = cls.get(gpu)
+        made = []
+        try:
+            made.append(ctx.renderbuffer((width, height), components=4, dtype="f4"))
+            made.append(ctx.depth_renderbuffer((width, height)))
+            made.append(ctx.framebuffer(color_attachments=[made[0]], depth_attachment=made[1]))
+            return True
+        except Exception:  # moderngl.Error (incomplete, out of memory) and the like
+            return False
+        finally:
+            for resource in reversed(made):
+                resource.release()
+
+
 def check_image_size(side: int, refusal: Callable[[int], Exception], gpu: bool = False) -> None:
     """Raise ``refusal(limit)`` when an image ``side`` pixels long exceeds what OpenGL's
     framebuffers hold here (``limit``, ``GLContext.max_image_size``)."""
