@@ -83,6 +83,7 @@ def fingerprint(scene: Scene) -> dict[str, object]:
         "materials": _sha256(json.dumps(materials, sort_keys=True).encode()),
         "objects": _objects_digest(scene),
         "solver.resolution": scene.solver.resolution,
+        **{f"solver.{k}": getattr(scene.solver, k) for k in ("patch_size", "overshoot", "shooter_split")},
         **{f"refine.{k}": getattr(scene.refine, k) for k in _REFINE_FIELDS},
     }
 
@@ -207,6 +208,9 @@ def content_problem(state, run) -> str | None:
             return f"refiner is a {type(refiner).__name__}, not a mapping"
         problem = (_number_problem(refiner.get("splits"), "refiner.splits", 0, integer=True)
                    or _number_problem(refiner.get("threshold"), "refiner.threshold", 0))
+    patches = state.get("patches")
+    if not problem and patches is not None:
+        problem = _patches_problem(patches, T)
     timings = state.get("timings")
     if not problem and (not isinstance(timings, dict) or not all(
             isinstance(k, str) and _number_problem(v, k, 0) is None for k, v in timings.items())):
@@ -217,6 +221,21 @@ def content_problem(state, run) -> str | None:
     return problem or _number_problem(run.get("initial_elements"), "run.initial_elements", 1, integer=True) or \
         _number_problem(seconds.get("mesh"), "run.seconds.mesh", 0) or \
         _number_problem(seconds.get("solve"), "run.seconds.solve", 0)
+
+
+def _patches_problem(patches, T: int) -> str | None:
+    """What is wrong with a solver state's ``patches`` (``PatchShooters.state_dict``), or None."""
+    if not isinstance(patches, dict):
+        return f"patches is a {type(patches).__name__}, not a mapping"
+    checks = [(patches.get("leaf"), "patches.leaf", (T,), torch.int64, lambda t: t >= 0, ">= 0"),
+              (patches.get("patch"), "patches.patch", (T,), torch.int64, lambda t: t >= 0, ">= 0")]
+    checks += [(patches.get(k), f"patches.{k}", (None,), torch.int64, lambda t: t >= 0, ">= 0")
+               for k in ("cut_patches", "cut_sizes", "cut_nodes")]
+    for check in checks:
+        problem = _tensor_problem(*check)
+        if problem:
+            return problem
+    return _number_problem(patches.get("shooter_splits"), "patches.shooter_splits", 0, integer=True)
 
 
 def describe_differences(saved: dict, current: dict) -> list[str]:

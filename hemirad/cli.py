@@ -60,6 +60,12 @@ def _resolution(text: str) -> int:
     return value
 
 
+def _patch_size(text: str) -> float | str:
+    if text in ("auto", "none"):
+        return text
+    return _positive_float(text)
+
+
 def _device(text: str) -> str:
     if not is_device_name(text):
         raise argparse.ArgumentTypeError(f"expected one of {', '.join(DEVICE_NAMES)}, got {text!r}")
@@ -100,6 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--unshot-fraction", type=_fraction,
                         help="stop when unshot / emitted power falls below this (solver.unshot_fraction)")
     parser.add_argument("--resolution", type=_resolution, help="hemicube resolution (solver.resolution)")
+    parser.add_argument("--patch-size", type=_patch_size, metavar="auto|none|SIZE",
+                        help="patches that shoot for their elements: auto (about 2 x 2 elements), a side "
+                             "length, or none: every element shoots, as in the paper (solver.patch_size)")
     parser.add_argument("--device", type=_device,
                         help="where the solve runs (solver.device): " +
                              "; ".join(f"{name}, {meaning}" for name, meaning in DEVICES.items()))
@@ -171,7 +180,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     scene = load_scene(args.scene)
     solver_options = {"max_shots": ("--shots", args.shots), "unshot_fraction": ("--unshot-fraction",
                       args.unshot_fraction), "resolution": ("--resolution", args.resolution),
-                      "device": ("--device", args.device)}
+                      "device": ("--device", args.device), "patch_size": ("--patch-size", args.patch_size)}
     refine_options = {"pattern": ("--refine", args.refine), "criterion": ("--criterion", args.criterion),
                       "threshold": ("--threshold", args.threshold),
                       "relative": ("--relative" if args.relative else "--absolute", args.relative),

@@ -28,7 +28,7 @@ from hemirad.core.atomic import remove_stale_temporaries
 from hemirad.core.device import select_device
 from hemirad.core.errors import HemiradInputError, SceneError, bounded_repr
 from hemirad.geometry.mesh import Mesh
-from hemirad.geometry.patches import build_patches
+from hemirad.geometry.patches import build_patches, element_sides
 from hemirad.geometry.split import angle_quality
 from hemirad.output import display, export, gltf
 from hemirad.output.meshview import pick_surface, surface_view
@@ -36,9 +36,14 @@ from hemirad.output.render import render_view
 from hemirad.scene.meshing import build_mesh
 from hemirad.scene.model import Camera, Scene
 from hemirad.transport.gl import GLContext, check_image_size
-from hemirad.transport.shooters import PatchShooters
+from hemirad.transport.shooters import PatchShooters, either, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver, ShotReport, ambient_term
 
+
+#: ``solver.patch_size: auto`` makes patches of about this many elements a side.
+AUTO_PATCH_ELEMENTS = 2.0
+#: A patch's light to receivers within this many patch radii is spread as its elements send it.
+NEAR_REACH = 3.0
 
 #: The files ``Result.write`` makes in an output folder, by kind.
 OUTPUT_FILES = {"image": "image.png", "mesh view": "mesh.png", "mesh": "mesh.ply", "glTF": "mesh.glb",
@@ -157,13 +162,19 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
     device = torch.device(select_device(scene.solver.device) if device is None else device)
     options = scene.solver
     patches = None
-    if options.patch_size is not None:
-        tree = build_patches(mesh, np.full(mesh.num_elements, options.patch_size))
-        test = None if options.shooter_split is None else point_source_test(options.shooter_split)
+    if options.patch_size not in (None, "none"):
+        if options.patch_size == "auto":
+            sizes = AUTO_PATCH_ELEMENTS * element_sides(mesh)
+        else:
+            sizes = np.full(mesh.num_elements, float(options.patch_size))
+        tree = build_patches(mesh, sizes)
+        test = hidden_centroid_test()
+        if options.shooter_split is not None:
+            test = either(test, point_source_test(options.shooter_split))
         patches = PatchShooters(tree, device, test)
     return ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner, cull=cull,
                              cache_bytes=int(options.cache_mb * (1 << 20)), patches=patches,
-                             overshoot=options.overshoot, near_reach=options.near_reach, device=device)
+                             overshoot=options.overshoot, near_reach=NEAR_REACH, device=device)
 
 
 def _restore(solver: ProgressiveSolver, state: dict, run: dict, path, initial_elements: int) -> dict:
@@ -414,6 +425,9 @@ def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_element
         "elements_per_level": torch.bincount(final.level).tolist(),
         "surfaces": len(final.surface_names),
         "shots": state.shots,
+        "patches": solver.patches.tree.num_patches if solver.patches is not None else None,
+        "shooter_splits": solver.patches.shooter_splits if solver.patches is not None else 0,
+        "hemicubes_rendered": solver.renderer.renders,
         "unshot_fraction": solver.unshot_fraction,
         "hemicube_resolution": scene.solver.resolution,
         "refine": {"pattern": scene.refine.pattern, "criterion": scene.refine.criterion,
@@ -422,6 +436,8 @@ def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_element
                    "splits": refiner.splits if refiner else 0},
         "largest_angle_degrees": angle_quality(final),
         "emitted_power": solver.emitted_power.tolist(),
+        # signed: overshooting leaves some unshot radiosity negative; emitted = absorbed + escaped + unshot
+        "unshot_power": (state.unshot * solver.areas[:, None]).sum(0).tolist(),
         "absorbed_power": state.absorbed.tolist(),
         "escaped_power": state.escaped.tolist(),
         "gl_renderer": GLContext.renderer_name(),

@@ -131,6 +131,7 @@ def solve(scene, settings: SolverSettings) -> tuple[Result, float]:
     stopping rule. Returns the result and the wall-clock seconds."""
     start = time.perf_counter()
     scene.solver.resolution = settings.resolution
+    scene.solver.paper()  # the study compares refinement criteria in the paper's shooting
     mesh = build_mesh(scene)
     solver = make_solver(scene, mesh)
     refiner = solver.refiner

@@ -14,8 +14,12 @@ against element count. For reading, never for asserting.
    more, counted: on a GPU each that computes is a kernel launch).
 2. The scaling table: the same room meshed to about 1k, 10k, 100k and 1M elements, no
    refinement, ``--shots`` shots after a warm-up shot, seconds per shot by phase.
+3. Convergence: shots and seconds to 1e-2, 1e-3 and 1e-4 unshot power for each bundled
+   scene as shipped, in the paper's configuration (every element shoots, every shot
+   rendered: the release before patches) and with the defaults (patches, overshooting,
+   kept form-factor rows), with the hemicubes rendered.
 
-Both tables, with the machine described, go to ``--out`` (Markdown; ``figures/bench.md`` on
+The tables, with the machine described, go to ``--out`` (Markdown; ``figures/bench.md`` on
 the CPU, ``figures/bench_cuda.md`` with ``--device cuda``). ``--quick`` runs a small version
 of each (a smoke test; its numbers are not the benchmark's).
 """
@@ -70,6 +74,7 @@ def peak_rss_mib() -> float:
 
 def adaptive_scene(threshold: float, shots: int, resolution: int, device: torch.device):
     scene = hemirad.load_scene("floating")
+    scene.solver.paper()  # the paper's configuration, as its Fig. 6(c)
     scene.solver.max_shots, scene.solver.unshot_fraction, scene.solver.resolution = shots, 0.0, resolution
     scene.solver.device = str(device)
     scene.refine.pattern, scene.refine.criterion, scene.refine.threshold = "pattern2", "gradient", threshold
@@ -159,6 +164,7 @@ def operator_counts(threshold: float, shots: int, resolution: int, device: torch
 
 
 def per_shot(scene, shots: int, resolution: int, device: torch.device) -> dict:
+    scene.solver.paper()  # seconds per element shot
     scene.solver.resolution = resolution
     solver = make_solver(scene, device=device)
     mesh = solver.mesh
@@ -192,6 +198,51 @@ def scaling(targets: list[int], shots: int, resolution: int, device: torch.devic
     return rows, lines
 
 
+CONVERGENCE_SCENES = ("cornell_box", "office", "floating")
+CONVERGENCE_TARGETS = (1e-2, 1e-3, 1e-4)
+
+
+def converge(name: str, targets, configuration: str, device: torch.device, max_shots: int) -> list[tuple]:
+    """(shots, seconds, renders) at each unshot target for one scene, solved once onwards."""
+    scene = hemirad.load_scene(name)
+    if configuration == "paper":
+        scene.solver.paper()
+        scene.solver.cache_mb = 0.0  # every shot renders, as before rows were kept
+    solver = make_solver(scene, device=device)
+    out = []
+    try:
+        start = time.perf_counter()
+        for target in targets:
+            solver.run(max_shots, target)
+            out.append((solver.state.shots, time.perf_counter() - start, solver.renderer.renders))
+    finally:
+        solver.close()
+    return out
+
+
+def convergence(scenes, targets, device: torch.device, max_shots: int = 400_000) -> list[str]:
+    lines = ["Shots (hemicubes rendered) and seconds to reach each unshot fraction, bundled scenes as shipped; "
+             "*paper*: every element shoots and every shot renders (the release before patches), "
+             "*default*: patches, overshooting, kept rows:", "",
+             "| scene | configuration | elements | patches | " + " | ".join(f"to {t:g}" for t in targets) + " |",
+             "|---|---|---:|---:|" + "---:|" * len(targets)]
+    for name in scenes:
+        for configuration in ("paper", "default"):
+            scene = hemirad.load_scene(name)
+            patches = "-"
+            if configuration == "default":
+                probe = make_solver(scene, device=device)
+                patches, elements = probe.patches.tree.num_patches, probe.mesh.num_elements
+                probe.close()
+            else:
+                elements = build_mesh(scene).num_elements
+            cells = [f"{shots} ({renders}) / {seconds:.1f} s" for shots, seconds, renders in
+                     converge(name, targets, configuration, device, max_shots)]
+            lines.append(f"| {name} | {configuration} | {elements} | {patches} | " + " | ".join(cells) + " |")
+            print(lines[-1], flush=True)
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threshold", type=float, default=1.35e-4,
@@ -221,9 +272,11 @@ def main() -> None:
     profile_lines += ["", *operator_counts(*adaptive_args)]
     print("\n".join(profile_lines), "\n", flush=True)
     rows, scaling_lines = scaling(targets, shots, adaptive_args[2], device)
+    convergence_lines = (convergence(("floating",), (5e-2,), device) if args.quick
+                         else convergence(CONVERGENCE_SCENES, CONVERGENCE_TARGETS, device))
     command = "python scripts/bench.py" + (f" --device {args.device}" if device.type == "cuda" else "")
     text = ["# Benchmark", "", f"Made by `{command}` on: {machine(device)}.", "",
-            *adaptive_lines, "", *profile_lines, "", *scaling_lines, ""]
+            *adaptive_lines, "", *profile_lines, "", *scaling_lines, "", *convergence_lines, ""]
     args.out.write_text("\n".join(text))
     print(f"\nwrote {args.out}")
 

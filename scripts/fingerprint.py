@@ -60,6 +60,8 @@ def digest(*arrays) -> str:
 
 def fingerprint(settings: dict) -> dict:
     scene = hemirad.load_scene(settings["scene"])
+    if hasattr(scene.solver, "paper"):  # the paper's configuration: every element shoots
+        scene.solver.paper()
     scene.solver.max_shots, scene.solver.unshot_fraction = settings["max_shots"], 0.0
     scene.solver.resolution = settings["resolution"]
     r = scene.refine

@@ -20,3 +20,7 @@ def test_quick_benchmark_writes_every_table(tmp_path):
     assert computing > 0 and views > 0
     scaling = re.findall(r"^\| (\d+) \| [\d.]+ \|", text, flags=re.MULTILINE)
     assert len(scaling) == 2 and int(scaling[0]) < int(scaling[1])  # the 1k and 10k rows
+    converged = re.findall(r"^\| floating \| (paper|default) \| \d+ \| [-\d]+ \| (\d+) \((\d+)\)", text, flags=re.MULTILINE)
+    assert [c[0] for c in converged] == ["paper", "default"]
+    (_, paper_shots, paper_renders), (_, shots, renders) = converged
+    assert int(shots) < int(paper_shots) and int(renders) < int(paper_renders)  # patches: fewer of both

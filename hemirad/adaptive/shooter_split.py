@@ -24,11 +24,11 @@ def point_source_error(view: HemicubeView, corners: torch.Tensor, significant: f
         view: the shooter's render at its centroid G (its eye just off G).
         corners: (K, 3) the corners P_k of the shooter's elements.
     """
-    J = form_factor_gradient(view)  # (T, 3), interior and shadow-edge terms
-    offsets = corners - view.eye  # (K, 3); the eye's offset off the plane is ~1e-6 of the scene
-    change = (J @ offsets.T).abs().amax(dim=1)  # (T,)
     F = view.form_factors
     counted = F > significant * float(F.max()) if len(F) else F > 0
+    J = form_factor_gradient(view, wanted=counted)  # (T, 3), interior and shadow-edge terms
+    offsets = corners - view.eye  # (K, 3); the eye's offset off the plane is ~1e-6 of the scene
+    change = (J @ offsets.T).abs().amax(dim=1)  # (T,)
     return torch.where(counted, change / F.clamp(min=1e-300), torch.zeros_like(F))
 
 

@@ -35,6 +35,7 @@ class PatchTree:
             centroid of its elements, their plane's unit normal, and an in-plane direction
             that fixes its hemicube's frame.
         area: (N,) float64.
+        leaf_node: (T,) int64 the node of each leaf position (a single initial element).
     """
 
     leaf: torch.Tensor
@@ -48,6 +49,7 @@ class PatchTree:
     normal: torch.Tensor
     tangent: torch.Tensor
     area: torch.Tensor
+    leaf_node: torch.Tensor
 
     @property
     def num_patches(self) -> int:
@@ -61,6 +63,12 @@ class PatchTree:
         return self.child_ids[int(self.child_start[node]):int(self.child_start[node + 1])].tolist()
 
 
+def element_sides(mesh: Mesh) -> np.ndarray:
+    """(T,) each element's side: sqrt(2 A), the legs of the right isosceles triangles a
+    square cell of that side is meshed into."""
+    return np.sqrt(2.0 * mesh.areas.cpu().numpy())
+
+
 def plane_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors u, v spanning the plane of the unit ``normal`` (3,), u x v = normal."""
     helper = np.eye(3)[int(np.argmin(np.abs(normal)))]  # the world axis least along the normal
@@ -71,13 +79,13 @@ def plane_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def build_patches(mesh: Mesh, patch_size: np.ndarray) -> PatchTree:
     """Group the elements of ``mesh`` into patches of about ``patch_size`` (T,) (a side length
-    per element; elements of one plane should agree) and build each patch's quadrant tree."""
+    per element; a plane takes its elements' median) and build each patch's quadrant tree."""
     centroids = mesh.centroids.cpu().numpy()
     normals = mesh.normals.cpu().numpy()
     areas = mesh.areas.cpu().numpy()
     corners = mesh.corners.cpu().numpy()
     edges = corners[:, 1] - corners[:, 0]
-    groups = _plane_cells(mesh.plane_ids.cpu().numpy(), centroids, normals, areas, np.asarray(patch_size))
+    groups = _plane_cells(mesh.plane_ids.cpu().numpy(), centroids, corners, normals, areas, np.asarray(patch_size))
     builder = _TreeBuilder(centroids, normals, areas, edges)
     roots, patch = [], np.empty(mesh.num_elements, dtype=np.int64)
     for index, (members, u, v) in enumerate(groups):
@@ -86,10 +94,11 @@ def build_patches(mesh: Mesh, patch_size: np.ndarray) -> PatchTree:
     return builder.finish(np.asarray(roots, dtype=np.int64), patch)
 
 
-def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarray, areas: np.ndarray,
-                 patch_size: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, corners: np.ndarray, normals: np.ndarray,
+                 areas: np.ndarray, patch_size: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The patches as (members (k,), plane axes u, v): per plane, the elements whose centroids
-    share a cell of the plane's square grid (its side the plane's smallest patch size)."""
+    share a cell of the plane's square grid (its side the plane's median patch size, its
+    origin the lowest corner of the plane's elements)."""
     order = np.argsort(plane_ids, kind="stable")
     bounds = np.flatnonzero(np.diff(plane_ids[order])) + 1
     out = []
@@ -100,9 +109,11 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
         if len(members) == 1:
             out.append((members, u, v))
             continue
-        xy = centroids[members] @ np.stack([u, v]).T  # (k, 2)
-        size = float(patch_size[members].min())
-        cell = np.floor((xy - xy.min(0)) / size).astype(np.int64)
+        axes = np.stack([u, v]).T
+        xy = centroids[members] @ axes  # (k, 2)
+        origin = (corners[members].reshape(-1, 3) @ axes).min(0)
+        size = float(np.median(patch_size[members]))
+        cell = np.floor((xy - origin) / size).astype(np.int64)
         key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
         by_cell = np.argsort(key, kind="stable")
         cuts = np.flatnonzero(np.diff(key[by_cell])) + 1
@@ -116,6 +127,7 @@ class _TreeBuilder:
     def __init__(self, centroids, normals, areas, edges):
         self.centroids, self.normals, self.areas, self.edges = centroids, normals, areas, edges
         self.leaf_order: list[int] = []
+        self.leaf_nodes: list[int] = []
         self.rows: list[list] = []  # per node: lo, hi, children, centroid, normal, tangent, area
 
     def node(self, members: np.ndarray, u: np.ndarray, v: np.ndarray) -> int:
@@ -125,6 +137,7 @@ class _TreeBuilder:
         if len(members) == 1:
             e = int(members[0])
             self.leaf_order.append(e)
+            self.leaf_nodes.append(index)
             # a single element shoots from where an element's own hemicube is: its centroid,
             # its normal, its first edge
             self.rows[index] = [lo, lo + 1, [], self.centroids[e], self.normals[e], self.edges[e], self.areas[e]]
@@ -149,7 +162,8 @@ class _TreeBuilder:
         return PatchTree(torch.from_numpy(leaf), torch.from_numpy(patch), torch.from_numpy(roots),
                          torch.tensor(lo), torch.tensor(hi), torch.from_numpy(child_start), torch.from_numpy(child_ids),
                          torch.tensor(np.stack(centroid), **f64), torch.tensor(np.stack(normal), **f64),
-                         torch.tensor(np.stack(tangent), **f64), torch.tensor(area, **f64))
+                         torch.tensor(np.stack(tangent), **f64), torch.tensor(area, **f64),
+                         torch.tensor(self.leaf_nodes, dtype=torch.int64))
 
 
 def _quadrants(xy: np.ndarray) -> list[np.ndarray]:

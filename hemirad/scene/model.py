@@ -107,16 +107,21 @@ class Camera:
 
 @dataclass
 class SolverOptions:
-    max_shots: int = 500
+    max_shots: int = 100_000  # a guard: a run stops by unshot_fraction first
     unshot_fraction: float = 1e-3  # stop when unshot power / emitted power falls below
     resolution: int = 128  # hemicube top face is resolution x resolution pixels
     ambient: bool = True  # add Cohen et al.'s ambient term to the displayed radiosity
     device: str = "cpu"  # where the torch work runs: one of hemirad.core.device.DEVICE_NAMES
-    patch_size: float | None = None  # side of the patches that shoot; None: every element shoots
+    # Patches that shoot for their elements: "auto" (about 2 x 2 elements), a side length,
+    # or None: every element shoots (the paper's configuration).
+    patch_size: float | str | None = "auto"
     overshoot: bool = True  # with patches: shoot rho times the ambient more (Feda & Purgathofer)
-    near_reach: float = 3.0  # with patches: spread their light to receivers within this many patch radii
     shooter_split: float | None = None  # with patches: split a shooter where eq. 7 exceeds this share
     cache_mb: float = 256.0  # memory for form-factor rows kept between a shooter's shots
+
+    def paper(self) -> None:
+        """Shoot as the paper does: every element, from its centroid, no overshooting."""
+        self.patch_size, self.overshoot, self.shooter_split = None, False, None
 
 
 @dataclass

@@ -12,7 +12,8 @@ from hemirad.scene.model import CRITERION_NAMES, Camera, RefineOptions, SolverOp
 MAX_TRIANGLES = 5_000_000
 
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
-_SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device")
+_SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot",
+                "shooter_split", "cache_mb")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
                 "interior", "shadow_edges", "view_surface")
 
@@ -66,7 +67,25 @@ def read_solver(check: Checker, v) -> SolverOptions:
             check.fail("solver.device", "one of " + ", ".join(DEVICE_NAMES), m["device"],
                        "cuda needs PyTorch with CUDA and an NVIDIA GPU; auto picks it when there is one.")
         opts.device = m["device"]
+    if "patch_size" in m:
+        opts.patch_size = read_patch_size(check, m["patch_size"], "solver.patch_size")
+    if "overshoot" in m:
+        opts.overshoot = check.boolean(m["overshoot"], "solver.overshoot")
+    if "shooter_split" in m:
+        value = m["shooter_split"]
+        opts.shooter_split = None if value in (None, "none") else check.bounded(
+            value, "solver.shooter_split", "a number > 0 or none", lambda x: x > 0)
+    if "cache_mb" in m:
+        opts.cache_mb = check.bounded(m["cache_mb"], "solver.cache_mb", "a number of megabytes >= 0",
+                                      lambda x: 0 <= x <= 1e7)
     return opts
+
+
+def read_patch_size(check: Checker, value, key: str) -> float | str | None:
+    """``auto``, ``none`` (every element shoots) or a side length > 0."""
+    if value in ("auto", "none", None):
+        return None if value in ("none", None) else "auto"
+    return check.bounded(value, key, "auto, none or a length > 0", lambda x: 0 < x < 1e15)
 
 
 def read_refine(check: Checker, v) -> RefineOptions:

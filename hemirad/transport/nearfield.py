@@ -27,7 +27,7 @@ class NearReceivers:
 
     Attributes:
         rows: (n,) the near receivers (not the node's own elements).
-        weights: (k, n) per element of the node (k), its unoccluded form factor to each near
+        weights: (k, n) per initial element of the node (k), its unoccluded form factor to each near
             receiver times that receiver's visibility from G; rows of a receiver G does not
             see are zero.
     """
@@ -36,10 +36,11 @@ class NearReceivers:
     weights: torch.Tensor
 
 
-def near_receivers(mesh: Mesh, members: torch.Tensor, point: torch.Tensor, normal: torch.Tensor,
-                   form_factors: torch.Tensor, reach: float) -> NearReceivers:
-    """The near receivers of the node whose (k,) ``members`` shoot from ``point`` (3,) along
-    ``normal`` (3,), and their weights, given the node's hemicube ``form_factors`` (T,)."""
+def near_receivers(mesh: Mesh, members: torch.Tensor, sources: torch.Tensor, point: torch.Tensor,
+                   normal: torch.Tensor, form_factors: torch.Tensor, reach: float) -> NearReceivers:
+    """The near receivers of the node whose (K,) ``members`` shoot from ``point`` (3,) along
+    ``normal`` (3,), and their weights from the (k, 3) ``sources`` (its initial elements'
+    centroids), given the node's hemicube ``form_factors`` (T,)."""
     centroids = mesh.centroids
     radius = float((mesh.corners_of(members).reshape(-1, 3) - point).norm(dim=1).max())
     near = (centroids - point).norm(dim=1) < reach * radius
@@ -50,7 +51,6 @@ def near_receivers(mesh: Mesh, members: torch.Tensor, point: torch.Tensor, norma
     from_point = point_to_triangles(point, normal, corners)  # (n,)
     visibility = torch.where(from_point > 0, form_factors.index_select(0, rows) / from_point.clamp(min=1e-300),
                              torch.zeros_like(from_point))
-    sources = centroids.index_select(0, members)
     weights = torch.stack([point_to_triangles(x, normal, corners) for x in sources]) * visibility  # (k, n)
     return NearReceivers(rows, weights)
 
@@ -58,7 +58,7 @@ def near_receivers(mesh: Mesh, members: torch.Tensor, point: torch.Tensor, norma
 def incident_power(form_factors: torch.Tensor, shot_power: torch.Tensor, near: NearReceivers | None,
                    member_power: torch.Tensor | None) -> torch.Tensor:
     """(T, 3) the power reaching every receiver's front from a node's shot of ``shot_power`` (3,),
-    its elements holding (k, 3) ``member_power`` of it: F_sj times the power, but among the
+    its initial elements holding (k, 3) ``member_power`` of it: F_sj times the power, but among the
     ``near`` receivers the same total spread by the elements' own weights."""
     incident = form_factors[:, None] * shot_power[None, :]
     if near is None or len(near.rows) == 0:

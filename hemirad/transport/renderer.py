@@ -36,6 +36,8 @@ class HemicubeRenderer:
             OpenGL context must be on the GPU too (``GLContext.get(gpu=True)``).
         profiler: accumulates ``raster``, ``readback`` and ``form_factors`` (decoding and
             summing) seconds; a new one when None.
+    Attributes:
+        renders: hemicubes rendered so far.
     """
 
     def __init__(self, mesh: Mesh, resolution: int, cull: bool = True, device: torch.device | str = "cpu",
@@ -44,6 +46,7 @@ class HemicubeRenderer:
         self.profiler = profiler if profiler is not None else Profiler(("raster", "readback", "form_factors"))
         self.weights = delta_form_factors(resolution, self.device)  # (3R, R)
         self.near, self.far = clip_planes(mesh)
+        self.renders = 0  # hemicubes rendered
         self.hemicube = Hemicube(resolution, cull, gpu=self.device.type == "cuda", profiler=self.profiler)
         self.set_geometry(mesh)
 
@@ -69,6 +72,7 @@ class HemicubeRenderer:
         mesh = self.mesh
         frame = tangent_frame(normal, tangent)
         eye = point + self.near * normal
+        self.renders += 1
         items = self.hemicube.render(eye, frame, self.near, self.far)
         with self.profiler.phase("form_factors"):
             element, front = (x.to(self.device).reshape(-1) for x in decode_items(items))

@@ -1,5 +1,6 @@
-"""Patches shoot, elements receive (Cohen, Chen, Wallace & Greenberg 1986): which patch shoots
-next, and which of its sub-patches its power leaves from (docs/DESIGN.md §1.4).
+"""Patches shoot, elements receive (Cohen, Greenberg, Immel & Brock 1986, substructuring):
+which patch shoots next, and which of its sub-patches its power leaves from
+(docs/DESIGN.md §1.4).
 
 A patch's power is the sum of its elements' unshot power, so the number of shots to converge
 follows the number of patches, not of elements. A patch shoots from one hemicube at its
@@ -23,6 +24,26 @@ from hemirad.transport.view import HemicubeView
 # (what a node's hemicube saw, (K, 3) the corners of the node's elements) -> shoot from its
 # children instead?
 ShooterTest = Callable[[HemicubeView, torch.Tensor], bool]
+
+
+def hidden_centroid_test(share: float = 0.01) -> ShooterTest:
+    """A ``ShooterTest`` that needs no more than the render: split a node whose hemicube
+    sends more than ``share`` of its power into back faces. Its centroid then lies where its
+    elements are not: under an object that stands on it (a floor patch straddling a block's
+    footprint), and would shoot into that object's inside."""
+    def test(view: HemicubeView, corners: torch.Tensor) -> bool:
+        seen_back = (view.element >= 0) & ~view.front
+        return float(view.weight[seen_back].sum()) > share
+
+    return test
+
+
+def either(*tests: ShooterTest) -> ShooterTest:
+    """A ``ShooterTest`` that splits where any of ``tests`` does (each asked in turn)."""
+    def test(view: HemicubeView, corners: torch.Tensor) -> bool:
+        return any(t(view, corners) for t in tests)
+
+    return test
 
 
 class PatchShooters:

@@ -193,9 +193,15 @@ class ProgressiveSolver:
         point it shoots from (None for an element: its own corners less their mean)."""
         if self.patches is None:
             return self.mesh.normals[shooter], None
+        # A node's extent is its shooter discretisation, which splitting receivers cannot mend
+        # (``adaptive.shooter_split`` splits the shooter): receivers are judged against the
+        # extent of one element, the one nearest the node's centroid, as when elements shoot.
         tree = self.patches.tree
-        corners = self.mesh.corners_of(self.patches.members(shooter)).reshape(-1, 3)
-        return tree.normal[shooter].to(self.device), corners - tree.centroid[shooter].to(self.device)
+        members = self.patches.members(shooter)
+        centroid = tree.centroid[shooter].to(self.device)
+        nearest = members[int(torch.argmin((self.mesh.centroids.index_select(0, members) - centroid).norm(dim=1)))]
+        corners = self.mesh.corners_of(int(nearest))
+        return tree.normal[shooter].to(self.device), corners - corners.mean(0)
 
     def eye_moves(self, shooter: int, split: torch.Tensor) -> bool:
         """Whether splitting the (K,) elements ``split`` moves the hemicube of ``shooter``: an
@@ -269,6 +275,10 @@ class ProgressiveSolver:
                     shot = shot + self.reflectance.index_select(0, members) * ambient
                 member_power = shot * self.areas.index_select(0, members)[:, None]
                 shot_power = member_power.sum(0)
+                # by the node's initial elements (the near field's sources), split or not
+                lo, hi = int(patches.tree.lo[node]), int(patches.tree.hi[node])
+                leaf_power = torch.zeros(hi - lo, 3, dtype=shot.dtype, device=self.device).index_add_(
+                    0, patches.leaf.index_select(0, members) - lo, member_power)
                 # taken before the shot: a refining shot may split the node's elements, whose
                 # children then inherit what is left
                 state.unshot.index_add_(0, members, -shot)
@@ -276,11 +286,9 @@ class ProgressiveSolver:
                 F = self.form_factors_of(node)
             else:
                 F = self.refiner.shoot(self, node, shot_power).form_factors
-                members = patches.members(node)  # the split ones' children: their shares by area
-                member_power = shot_power * (self.areas.index_select(0, members) / self.areas[members].sum())[:, None]
             with self.profiler.phase("update"):
-                near = self._near_receivers(node, members, F)
-                self._receive_incident(incident_power(F, shot_power, near, member_power), shot_power)
+                near = self._near_receivers(node, F)
+                self._receive_incident(incident_power(F, shot_power, near, leaf_power), shot_power)
         state.shots += 1
         return patch
 
@@ -302,15 +310,18 @@ class ProgressiveSolver:
         self.state.unshot[shooter] = 0.0
         self.state.shots += 1
 
-    def _near_receivers(self, node: int, members: torch.Tensor, F: torch.Tensor) -> NearReceivers | None:
-        """The receivers near ``node`` whose light its elements spread (``nearfield``), kept
-        while the mesh is unchanged; None without a near field."""
-        if self.near_reach <= 0 or len(members) < 2:
+    def _near_receivers(self, node: int, F: torch.Tensor) -> NearReceivers | None:
+        """The receivers near ``node`` whose light its initial elements spread (``nearfield``),
+        kept while the mesh is unchanged; None for a single element, or without a near field."""
+        tree = self.patches.tree
+        lo, hi = int(tree.lo[node]), int(tree.hi[node])
+        if self.near_reach <= 0 or hi - lo < 2:
             return None
         if node not in self._near:
-            tree = self.patches.tree
-            self._near[node] = near_receivers(self.mesh, members, tree.centroid[node].to(self.device),
-                                              tree.normal[node].to(self.device), F, self.near_reach)
+            sources = tree.centroid.index_select(0, tree.leaf_node[lo:hi]).to(self.device)
+            self._near[node] = near_receivers(self.mesh, self.patches.members(node), sources,
+                                              tree.centroid[node].to(self.device), tree.normal[node].to(self.device),
+                                              F, self.near_reach)
         return self._near[node]
 
     def _receive_incident(self, incident: torch.Tensor, shot_power: torch.Tensor) -> None:
@@ -355,8 +366,8 @@ class ProgressiveSolver:
 
         Keys: ``mesh`` (``Mesh.state_dict``; refinement changes it), ``reflectance``,
         ``emission``, ``radiosity``, ``unshot`` (T, 3) float64; ``absorbed``, ``escaped``,
-        ``emitted_power`` (3,) float64; ``shots``; ``refiner`` (its own ``state_dict``, or
-        None) and ``timings``. ``emitted_power`` is kept rather than recomputed because the
+        ``emitted_power`` (3,) float64; ``shots``; ``refiner`` and ``patches`` (their own
+        ``state_dict``, or None) and ``timings``. ``emitted_power`` is kept rather than recomputed because the
         refined mesh's areas sum to it only to rounding, and the stopping rule divides by it.
         """
         s = self.state
@@ -365,6 +376,7 @@ class ProgressiveSolver:
                  "emitted_power": self.emitted_power}
         return {"mesh": self.mesh.state_dict(), **{k: v.cpu().clone() for k, v in saved.items()}, "shots": s.shots,
                 "refiner": self.refiner.state_dict() if self.refiner is not None else None,
+                "patches": self.patches.state_dict() if self.patches is not None else None,
                 "timings": self.timings()}
 
     def load_state_dict(self, state: dict) -> None:
@@ -394,8 +406,13 @@ class ProgressiveSolver:
                     SolverState(per_element["radiosity"], per_element["unshot"], int(state["shots"]),
                                 state["absorbed"], state["escaped"]))
         self.emitted_power = state["emitted_power"].to(torch.float64).to(self.device)
+        if (state.get("patches") is None) != (self.patches is None):
+            raise ValueError("the state was saved with patches " + ("off" if state.get("patches") is None else "on"))
         if self.refiner is not None:
             self.refiner.load_state_dict(state["refiner"])
+        if self.patches is not None:
+            self.patches.load_state_dict(state["patches"], T)
+        self._near.clear()
         self.renderer.set_geometry(mesh)
         self.rows.clear()
         self.profiler.load_state_dict(timings)
