@@ -36,7 +36,7 @@ FILENAME = "checkpoint.pt"
 
 # Refine options that change which elements get split; view_surface only picks a picture.
 _REFINE_FIELDS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
-                  "interior", "shadow_edges")
+                  "interior", "shadow_edges", "shots")
 
 
 def _sha256(data: bytes) -> str:

@@ -125,6 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="the threshold is in radiosity units")
     refine.add_argument("--max-depth", type=_depth, help="splits of one initial element, at most (0 to 16)")
     refine.add_argument("--max-elements", type=_element_budget, help="element budget")
+    refine.add_argument("--refine-shots", type=_positive_int, metavar="N",
+                        help="refine during the first N shots, then shoot on the mesh they made (refine.shots)")
     runs = parser.add_argument_group("long runs")
     runs.add_argument("--checkpoint-every", type=_non_negative_int, default=0, metavar="N",
                       help="write OUT/checkpoint.pt after every N shots, and when the run ends (default 0: never)")
@@ -184,7 +186,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     refine_options = {"pattern": ("--refine", args.refine), "criterion": ("--criterion", args.criterion),
                       "threshold": ("--threshold", args.threshold),
                       "relative": ("--relative" if args.relative else "--absolute", args.relative),
-                      "max_depth": ("--max-depth", args.max_depth), "max_elements": ("--max-elements", args.max_elements)}
+                      "max_depth": ("--max-depth", args.max_depth), "max_elements": ("--max-elements", args.max_elements),
+                      "shots": ("--refine-shots", args.refine_shots)}
     for block, options in (("solver", solver_options), ("refine", refine_options)):
         given = {k: v for k, (_, v) in options.items() if v is not None}
         setattr(scene, block, replace(getattr(scene, block), **given))

@@ -174,7 +174,8 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
         patches = PatchShooters(tree, device, test)
     return ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner, cull=cull,
                              cache_bytes=int(options.cache_mb * (1 << 20)), patches=patches,
-                             overshoot=options.overshoot, near_reach=NEAR_REACH, device=device)
+                             overshoot=options.overshoot, near_reach=NEAR_REACH,
+                             refine_shots=scene.refine.shots if refiner is not None else None, device=device)
 
 
 def _restore(solver: ProgressiveSolver, state: dict, run: dict, path, initial_elements: int) -> dict:

@@ -195,3 +195,28 @@ def test_refined_solve_is_the_same_with_and_without_the_bound():
     assert bounded.mesh.num_elements > 1.5 * build_mesh(hemirad.load_scene("floating_coarse")).num_elements
     assert torch.equal(bounded.mesh.triangles, exact.mesh.triangles)
     assert torch.equal(bounded.state.radiosity, exact.state.radiosity)
+
+
+def test_refinement_stops_after_refine_shots():
+    # Refining during the first 8 shots only: the mesh stops growing there, and the solve is
+    # the one that drops its refiner after 8 shots, bit for bit.
+    from hemirad.pipeline import make_solver
+
+    scene = floating(shots=20, pattern="pattern2", threshold=3e-4, max_depth=2)
+    scene.refine.shots = 8
+    limited = make_solver(scene)
+    manual = make_solver(floating(shots=20, pattern="pattern2", threshold=3e-4, max_depth=2))
+    try:
+        limited.run(8, 0.0)
+        after_eight = limited.mesh.num_elements
+        limited.run(20, 0.0)
+        manual.run(8, 0.0)
+        manual.refiner = None
+        manual.run(20, 0.0)
+    finally:
+        limited.close()
+        manual.close()
+    assert after_eight > build_mesh(scene).num_elements  # it did refine, then stopped
+    assert limited.mesh.num_elements == after_eight
+    assert torch.equal(limited.mesh.triangles, manual.mesh.triangles)
+    assert torch.equal(limited.state.radiosity, manual.state.radiosity)

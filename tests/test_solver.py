@@ -98,7 +98,7 @@ def test_kept_form_factor_rows_give_the_rendered_solve_bit_for_bit():
 def test_form_factor_rows_stay_within_their_budget():
     from hemirad.transport.rowcache import FormFactorRows
 
-    rows = FormFactorRows(budget_bytes=3 * 16 * 10)  # three rows of ten elements reached
+    rows = FormFactorRows(budget_bytes=3 * 12 * 10)  # three rows of ten elements reached
     row = torch.zeros(100, dtype=torch.float64)
     row[:10] = 0.01
     for shooter in range(5):

@@ -85,7 +85,7 @@ def build_patches(mesh: Mesh, patch_size: np.ndarray) -> PatchTree:
     areas = mesh.areas.cpu().numpy()
     corners = mesh.corners.cpu().numpy()
     edges = corners[:, 1] - corners[:, 0]
-    groups = _plane_cells(mesh.plane_ids.cpu().numpy(), centroids, corners, normals, areas, np.asarray(patch_size))
+    groups = _plane_cells(mesh.plane_ids.cpu().numpy(), centroids, normals, areas, np.asarray(patch_size))
     builder = _TreeBuilder(centroids, normals, areas, edges)
     roots, patch = [], np.empty(mesh.num_elements, dtype=np.int64)
     for index, (members, u, v) in enumerate(groups):
@@ -94,11 +94,11 @@ def build_patches(mesh: Mesh, patch_size: np.ndarray) -> PatchTree:
     return builder.finish(np.asarray(roots, dtype=np.int64), patch)
 
 
-def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, corners: np.ndarray, normals: np.ndarray,
-                 areas: np.ndarray, patch_size: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarray, areas: np.ndarray,
+                 patch_size: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The patches as (members (k,), plane axes u, v): per plane, the elements whose centroids
     share a cell of the plane's square grid (its side the plane's median patch size, its
-    origin the lowest corner of the plane's elements)."""
+    origin the lowest element centroid)."""
     order = np.argsort(plane_ids, kind="stable")
     bounds = np.flatnonzero(np.diff(plane_ids[order])) + 1
     out = []
@@ -109,9 +109,12 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, corners: np.ndarr
         if len(members) == 1:
             out.append((members, u, v))
             continue
-        axes = np.stack([u, v]).T
-        xy = centroids[members] @ axes  # (k, 2)
-        origin = (corners[members].reshape(-1, 3) @ axes).min(0)
+        xy = centroids[members] @ np.stack([u, v]).T  # (k, 2)
+        # The grid starts at the lowest centroid, not at the plane's corner: aligned with the
+        # element cells, every patch centroid falls on a mesh vertex, and measured on the
+        # Cornell box against its reference that tripled the error (relative MSE
+        # 0.0089 against 0.0025); why is not yet understood.
+        origin = xy.min(0)
         size = float(np.median(patch_size[members]))
         cell = np.floor((xy - origin) / size).astype(np.int64)
         key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]

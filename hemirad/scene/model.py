@@ -135,6 +135,7 @@ class RefineOptions:
     max_depth: int = 4  # splits of one initial element, at most
     min_area: float = 0.0  # never make elements smaller than this
     max_elements: int = 200_000  # element budget; the largest scores are split first
+    shots: int | None = None  # refine during the first this many shots, then shoot on; None: every shot
     interior: bool = True  # gradient terms, for accuracy studies
     shadow_edges: bool = True
     view_surface: str | None = None  # surface shown in mesh.png; default: the floor

@@ -15,7 +15,7 @@ _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot",
                 "shooter_split", "cache_mb")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
-                "interior", "shadow_edges", "view_surface")
+                "interior", "shadow_edges", "view_surface", "shots")
 
 
 def read_camera(check: Checker, v) -> Camera:
@@ -112,6 +112,9 @@ def read_refine(check: Checker, v) -> RefineOptions:
         if not isinstance(m["view_surface"], str):
             check.fail("refine.view_surface", "a surface name such as room.floor", m["view_surface"])
         opts.view_surface = m["view_surface"]
+    if "shots" in m:
+        opts.shots = None if m["shots"] in (None, "none") else check.integer(
+            m["shots"], "refine.shots", "a whole number >= 1 or none", 1)
     if not (opts.interior or opts.shadow_edges):
         check.fail("refine.interior", "at least one of interior and shadow_edges to be true", False)
     return opts

@@ -33,7 +33,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
 ARITHMETIC = 1
 
-# Memory for kept form-factor rows by default: a row costs 16 bytes per element it reaches.
+# Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
 
 
@@ -135,6 +135,8 @@ class ProgressiveSolver:
             converges in fewer shots.
         near_reach: with patches, the receivers within this many patch radii of a patch's
             centroid get its light spread as its elements send it (``nearfield``); 0: none.
+        refine_shots: with a refiner, refine during the first this many shots only, then
+            shoot on the mesh they made; None: every shot.
         cache_bytes: memory for the form-factor rows of shooters that shot
             (``FormFactorRows``): a shooter that shoots again on an unchanged mesh reuses its
             row instead of rendering its hemicube again (the same numbers).
@@ -149,7 +151,7 @@ class ProgressiveSolver:
     def __init__(self, mesh: Mesh, reflectance: torch.Tensor, emission: torch.Tensor, resolution: int,
                  refiner: ShotRefiner | None = None, cull: bool = True, cache_bytes: int = DEFAULT_CACHE_BYTES,
                  patches: PatchShooters | None = None, overshoot: bool = False, near_reach: float = 0.0,
-                 device: torch.device | str = "cpu"):
+                 refine_shots: int | None = None, device: torch.device | str = "cpu"):
         self.device = torch.device(device)
         mesh = mesh.to(self.device)
         reflectance, emission = reflectance.to(self.device), emission.to(self.device)
@@ -160,6 +162,7 @@ class ProgressiveSolver:
         self.profiler = Profiler(PHASES)
         self.renderer = HemicubeRenderer(mesh, resolution, cull, self.device, self.profiler)
         self.refiner = refiner
+        self.refine_shots = refine_shots
         self.rows = FormFactorRows(cache_bytes)
         self.patches = patches
         self.overshoot = overshoot and patches is not None
@@ -175,6 +178,13 @@ class ProgressiveSolver:
         some unshot radiosity negative)."""
         unshot_power = (self.state.unshot.abs() * self.areas[:, None]).sum()
         return float(unshot_power / self.emitted_power.sum())
+
+    @property
+    def active_refiner(self) -> ShotRefiner | None:
+        """The refiner while shots may still refine (``refine_shots``), else None."""
+        if self.refine_shots is not None and self.state.shots >= self.refine_shots:
+            return None
+        return self.refiner
 
     def render(self, shooter: int) -> HemicubeView:
         """What the hemicube of ``shooter`` (an element, or with patches a node of their
@@ -245,10 +255,11 @@ class ProgressiveSolver:
         shot_power = power[shooter].clone()
         if float(shot_power.sum()) <= 0.0:
             return None
-        if self.refiner is None:
+        refiner = self.active_refiner
+        if refiner is None:
             F = self.form_factors_of(shooter)
         else:
-            F = self.refiner.shoot(self, shooter, shot_power).form_factors
+            F = refiner.shoot(self, shooter, shot_power).form_factors
         with self.profiler.phase("update"):
             self._commit(shooter, shot_power, F)
         return shooter
@@ -282,10 +293,11 @@ class ProgressiveSolver:
                 # taken before the shot: a refining shot may split the node's elements, whose
                 # children then inherit what is left
                 state.unshot.index_add_(0, members, -shot)
-            if self.refiner is None:
+            refiner = self.active_refiner
+            if refiner is None:
                 F = self.form_factors_of(node)
             else:
-                F = self.refiner.shoot(self, node, shot_power).form_factors
+                F = refiner.shoot(self, node, shot_power).form_factors
             with self.profiler.phase("update"):
                 near = self._near_receivers(node, F)
                 self._receive_incident(incident_power(F, shot_power, near, leaf_power), shot_power)
