@@ -22,13 +22,11 @@ import numpy as np
 import torch
 
 from hemirad import checkpoint as checkpoints
-from hemirad.adaptive.refine import Refiner
-from hemirad.adaptive.shooter_split import point_source_test
+from hemirad.assembly import make_solver
 from hemirad.core.atomic import remove_stale_temporaries
 from hemirad.core.device import select_device
 from hemirad.core.errors import HemiradInputError, SceneError, bounded_repr
 from hemirad.geometry.mesh import Mesh
-from hemirad.geometry.patches import build_patches, element_sides
 from hemirad.geometry.split import angle_quality
 from hemirad.output import display, export, gltf
 from hemirad.output.meshview import pick_surface, surface_view
@@ -36,14 +34,8 @@ from hemirad.output.render import render_view
 from hemirad.scene.meshing import build_mesh
 from hemirad.scene.model import Camera, Scene
 from hemirad.transport.gl import GLContext, check_image_size
-from hemirad.transport.shooters import PatchShooters, either, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver, ShotReport, ambient_term
 
-
-#: ``solver.patch_size: auto`` makes patches of about this many elements a side.
-AUTO_PATCH_ELEMENTS = 2.0
-#: A patch's light to receivers within this many patch radii is spread as its elements send it.
-NEAR_REACH = 3.0
 
 #: The files ``Result.write`` makes in an output folder, by kind.
 OUTPUT_FILES = {"image": "image.png", "mesh view": "mesh.png", "mesh": "mesh.ply", "glTF": "mesh.glb",
@@ -142,40 +134,6 @@ class Result:
         vertex = self.vertex_radiosity() if vertex_radiosity is None else vertex_radiosity
         gltf.write_glb(path, self.mesh, vertex, gltf.display_color(vertex, self.exposure()))
         return Path(path)
-
-
-def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device | str | None = None,
-                cull: bool = True, relabel: bool = True, bound: bool = True) -> ProgressiveSolver:
-    """The progressive solver for ``scene``: its initial ``mesh`` (``build_mesh(scene)`` when
-    None) with the materials' reflectance and emission, the hemicube resolution of
-    ``scene.solver``, and a ``Refiner`` when ``scene.refine`` asks for refinement.
-
-    Args:
-        device: where to solve; default ``scene.solver.device`` (``select_device``).
-        cull, relabel, bound: the equivalent fast paths (``ProgressiveSolver``, ``Refiner``),
-            switchable to show that they change no number.
-    """
-    mesh = build_mesh(scene) if mesh is None else mesh
-    reflectance = scene.reflectance_table()[mesh.material]
-    emission = scene.emission_table()[mesh.material]
-    refiner = Refiner(scene.refine, emission, relabel=relabel, bound=bound) if scene.refine.enabled else None
-    device = torch.device(select_device(scene.solver.device) if device is None else device)
-    options = scene.solver
-    patches = None
-    if options.patch_size not in (None, "none"):
-        if options.patch_size == "auto":
-            sizes = AUTO_PATCH_ELEMENTS * element_sides(mesh)
-        else:
-            sizes = np.full(mesh.num_elements, float(options.patch_size))
-        tree = build_patches(mesh, sizes)
-        test = hidden_centroid_test()
-        if options.shooter_split is not None:
-            test = either(test, point_source_test(options.shooter_split))
-        patches = PatchShooters(tree, device, test)
-    return ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner, cull=cull,
-                             cache_bytes=int(options.cache_mb * (1 << 20)), patches=patches,
-                             overshoot=options.overshoot, near_reach=NEAR_REACH,
-                             refine_shots=scene.refine.shots if refiner is not None else None, device=device)
 
 
 def _restore(solver: ProgressiveSolver, state: dict, run: dict, path, initial_elements: int) -> dict:

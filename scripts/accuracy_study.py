@@ -37,8 +37,9 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 import hemirad
+from hemirad.assembly import make_solver
 from hemirad.evaluation import metrics, reference
-from hemirad.pipeline import Result, make_solver
+from hemirad.pipeline import Result
 from hemirad.scene.meshing import build_mesh
 from hemirad.transport.gl import GLContext
 

@@ -39,8 +39,8 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import hemirad
+from hemirad.assembly import make_solver
 from hemirad.core.device import select_device
-from hemirad.pipeline import make_solver
 from hemirad.scene.meshing import build_mesh
 from hemirad.transport.gl import GLContext
 

@@ -4,8 +4,8 @@ import numpy as np
 import torch
 
 import hemirad
+from hemirad.assembly import make_solver
 from hemirad.geometry.mesh import Mesh
-from hemirad.pipeline import make_solver
 from hemirad.scene.meshing import grid_quad
 
 

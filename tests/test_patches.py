@@ -6,8 +6,8 @@ import torch
 
 import hemirad
 from hemirad.adaptive.shooter_split import point_source_test
+from hemirad.assembly import make_solver
 from hemirad.geometry.patches import build_patches, element_sides
-from hemirad.pipeline import make_solver
 from hemirad.transport.shooters import PatchShooters, either, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver
 

@@ -200,7 +200,7 @@ def test_refined_solve_is_the_same_with_and_without_the_bound():
 def test_refinement_stops_after_refine_shots():
     # Refining during the first 8 shots only: the mesh stops growing there, and the solve is
     # the one that drops its refiner after 8 shots, bit for bit.
-    from hemirad.pipeline import make_solver
+    from hemirad.assembly import make_solver
 
     scene = floating(shots=20, pattern="pattern2", threshold=3e-4, max_depth=2)
     scene.refine.shots = 8

@@ -1,0 +1,55 @@
+"""The solver a scene asks for: its initial mesh, patches and their shooter tests, the
+refiner, and the progressive solver over them (``make_solver``)."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from hemirad.adaptive.refine import Refiner
+from hemirad.adaptive.shooter_split import point_source_test
+from hemirad.core.device import select_device
+from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.patches import build_patches, element_sides
+from hemirad.scene.meshing import build_mesh
+from hemirad.scene.model import Scene
+from hemirad.transport.shooters import PatchShooters, either, hidden_centroid_test
+from hemirad.transport.solver import ProgressiveSolver
+
+#: ``solver.patch_size: auto`` makes patches of about this many elements a side.
+AUTO_PATCH_ELEMENTS = 2.0
+#: A patch's light to receivers within this many patch radii is spread as its elements send it.
+NEAR_REACH = 3.0
+
+
+def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device | str | None = None,
+                cull: bool = True, relabel: bool = True, bound: bool = True) -> ProgressiveSolver:
+    """The progressive solver for ``scene``: its initial ``mesh`` (``build_mesh(scene)`` when
+    None) with the materials' reflectance and emission, the hemicube resolution of
+    ``scene.solver``, and a ``Refiner`` when ``scene.refine`` asks for refinement.
+
+    Args:
+        device: where to solve; default ``scene.solver.device`` (``select_device``).
+        cull, relabel, bound: the equivalent fast paths (``ProgressiveSolver``, ``Refiner``),
+            switchable to show that they change no number.
+    """
+    mesh = build_mesh(scene) if mesh is None else mesh
+    reflectance = scene.reflectance_table()[mesh.material]
+    emission = scene.emission_table()[mesh.material]
+    refiner = Refiner(scene.refine, emission, relabel=relabel, bound=bound) if scene.refine.enabled else None
+    device = torch.device(select_device(scene.solver.device) if device is None else device)
+    options = scene.solver
+    patches = None
+    if options.patch_size not in (None, "none"):
+        if options.patch_size == "auto":
+            sizes = AUTO_PATCH_ELEMENTS * element_sides(mesh)
+        else:
+            sizes = np.full(mesh.num_elements, float(options.patch_size))
+        tree = build_patches(mesh, sizes)
+        test = hidden_centroid_test()
+        if options.shooter_split is not None:
+            test = either(test, point_source_test(options.shooter_split))
+        patches = PatchShooters(tree, device, test)
+    return ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner, cull=cull,
+                             cache_bytes=int(options.cache_mb * (1 << 20)), patches=patches,
+                             overshoot=options.overshoot, near_reach=NEAR_REACH,
+                             refine_shots=scene.refine.shots if refiner is not None else None, device=device)
