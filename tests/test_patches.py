@@ -127,3 +127,54 @@ def test_patches_converge_in_fewer_shots_and_renders_than_elements():
         finally:
             solver.close()
     assert counts["auto"][0] < counts[None][0] / 4 and counts["auto"][1] < counts[None][1] / 2
+
+
+def test_a_split_emitter_draws_the_penumbra_a_centroid_shot_cannot():
+    # A 0.4 m square emitter 1 m above a floor strip, a 0.3 m blocker half way: the floor's
+    # radiosity against Lambert's closed form for the part of the emitter each point sees
+    # (the emitter less the blocker's projection from the point). One hemicube at the
+    # emitter's centroid draws a hard shadow; shooting from the parts eq. 7 asks for follows
+    # the penumbra, down to the emitter's own elements (2.5 cm: the staircase of their
+    # centroids is what is left).
+    from hemirad.geometry.analytic import point_to_polygon
+
+    from patches import quad, quads_mesh
+
+    emitter = quad([-0.2, 1.0, -0.2], [0.4, 0, 0], [0, 0, 0.4])  # faces down
+    blocker = quad([-0.15, 0.5, -0.15], [0, 0, 0.3], [0.3, 0, 0])  # faces up
+    floor = quad([-0.8, 0.0, -0.02], [0, 0, 0.04], [1.6, 0, 0])  # faces up
+    mesh = quads_mesh([emitter, blocker, floor], [0.025, 0.3, 0.04])
+    T = mesh.num_elements
+    rho = torch.zeros(T, 3, dtype=torch.float64)
+    rho[mesh.surface == 2] = 0.5
+    E = torch.zeros(T, 3, dtype=torch.float64)
+    E[mesh.surface == 0] = 10.0
+    on_floor = torch.nonzero(mesh.surface == 2).reshape(-1)
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+
+    def closed_form(p):
+        F = point_to_polygon(p, up, emitter)
+        shadow = p + (blocker - p) * (1.0 - p[1]) / (0.5 - p[1])  # on the emitter's plane
+        lo, hi = torch.maximum(shadow.amin(0), emitter.amin(0)), torch.minimum(shadow.amax(0), emitter.amax(0))
+        if hi[0] > lo[0] and hi[2] > lo[2]:
+            hidden = torch.tensor([[lo[0], 1, lo[2]], [hi[0], 1, lo[2]], [hi[0], 1, hi[2]], [lo[0], 1, hi[2]]],
+                                  dtype=torch.float64)
+            F = F - point_to_polygon(p, up, hidden)
+        return 0.5 * 10.0 * F
+
+    expected = torch.stack([closed_form(p) for p in mesh.centroids[on_floor]])
+    lit = expected > 0.1 * expected.max()
+    penumbra = lit & (expected < 0.98 * expected.max())
+    assert int(penumbra.sum()) > 40
+    errors = {}
+    for split in (None, point_source_test(0.5)):
+        tree = build_patches(mesh, np.full(T, 1.0))  # the emitter is one patch
+        shooters = PatchShooters(tree, torch.device("cpu"), split)
+        solver = ProgressiveSolver(mesh, rho, E, 256, patches=shooters, overshoot=False, near_reach=0.0)
+        try:
+            solver.run(1, 0.0)  # the emitter's shot: nothing else reflects anything back
+        finally:
+            solver.close()
+        error = solver.state.radiosity[on_floor, 0] / expected - 1
+        errors[split is not None] = float(error[penumbra].abs().max())
+    assert errors[False] > 0.15 and errors[True] < 0.08, errors  # measured: 1.00 and 0.073
