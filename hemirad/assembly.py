@@ -25,7 +25,9 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
                 cull: bool = True, relabel: bool = True, bound: bool = True) -> ProgressiveSolver:
     """The progressive solver for ``scene``: its initial ``mesh`` (``build_mesh(scene)`` when
     None) with the materials' reflectance and emission, the hemicube resolution of
-    ``scene.solver``, and a ``Refiner`` when ``scene.refine`` asks for refinement.
+    ``scene.solver``, the patches that shoot unless ``scene.solver.patch_size`` is none
+    (with the hidden-centroid test, and eq. 7's with ``shooter_split``), and a ``Refiner``
+    when ``scene.refine`` asks for refinement.
 
     Args:
         device: where to solve; default ``scene.solver.device`` (``select_device``).

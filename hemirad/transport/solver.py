@@ -255,11 +255,7 @@ class ProgressiveSolver:
         shot_power = power[shooter].clone()
         if float(shot_power.sum()) <= 0.0:
             return None
-        refiner = self.active_refiner
-        if refiner is None:
-            F = self.form_factors_of(shooter)
-        else:
-            F = refiner.shoot(self, shooter, shot_power).form_factors
+        F = self._shot_form_factors(shooter, shot_power)
         with self.profiler.phase("update"):
             self._commit(shooter, shot_power, F)
         return shooter
@@ -293,16 +289,20 @@ class ProgressiveSolver:
                 # taken before the shot: a refining shot may split the node's elements, whose
                 # children then inherit what is left
                 state.unshot.index_add_(0, members, -shot)
-            refiner = self.active_refiner
-            if refiner is None:
-                F = self.form_factors_of(node)
-            else:
-                F = refiner.shoot(self, node, shot_power).form_factors
+            F = self._shot_form_factors(node, shot_power)
             with self.profiler.phase("update"):
                 near = self._near_receivers(node, F)
                 self._receive_incident(incident_power(F, shot_power, near, leaf_power), shot_power)
         state.shots += 1
         return patch
+
+    def _shot_form_factors(self, shooter: int, shot_power: torch.Tensor) -> torch.Tensor:
+        """(T,) F_sj of a shot of ``shot_power`` (3,) from ``shooter``: its kept or rendered row,
+        or, while shots refine, what the refiner's last pass saw (the mesh may have grown)."""
+        refiner = self.active_refiner
+        if refiner is None:
+            return self.form_factors_of(shooter)
+        return refiner.shoot(self, shooter, shot_power).form_factors
 
     def form_factors_of(self, shooter: int) -> torch.Tensor:
         """(T,) F_sj from ``shooter`` on the current mesh: its kept row, else rendered (and kept)."""
