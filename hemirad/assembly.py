@@ -10,7 +10,7 @@ from hemirad.adaptive.shooter_split import point_source_test
 from hemirad.core.device import select_device
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patches import build_patches, element_sides
-from hemirad.scene.meshing import build_mesh
+from hemirad.scene.meshing import build_mesh, surface_objects
 from hemirad.scene.model import Scene
 from hemirad.transport.shooters import PatchShooters, either, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver
@@ -42,11 +42,7 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
     options = scene.solver
     patches = None
     if options.patch_size not in (None, "none"):
-        if options.patch_size == "auto":
-            sizes = AUTO_PATCH_ELEMENTS * element_sides(mesh)
-        else:
-            sizes = np.full(mesh.num_elements, float(options.patch_size))
-        tree = build_patches(mesh, sizes)
+        tree = build_patches(mesh, patch_sizes(scene, mesh))
         test = hidden_centroid_test()
         if options.shooter_split is not None:
             test = either(test, point_source_test(options.shooter_split))
@@ -55,3 +51,22 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
                              cache_bytes=int(options.cache_mb * (1 << 20)), patches=patches,
                              overshoot=options.overshoot, near_reach=NEAR_REACH,
                              refine_shots=scene.refine.shots if refiner is not None else None, device=device)
+
+
+def patch_sizes(scene: Scene, mesh: Mesh) -> np.ndarray:
+    """(T,) the patch side each element asks for: its object's ``patch_size``, else the
+    solver's; ``auto`` is ``AUTO_PATCH_ELEMENTS`` element sides, ``none`` 0 (it shoots alone)."""
+    sides = element_sides(mesh)
+    object_of = surface_objects(scene, mesh)  # (S,) the object of each surface
+    out = np.empty(mesh.num_elements)
+    surface = mesh.surface.cpu().numpy()
+    for index, obj in enumerate(scene.objects):
+        size = obj.patch_size if obj.patch_size is not None else scene.solver.patch_size
+        rows = object_of[surface] == index
+        if size in (None, "none"):
+            out[rows] = 0.0
+        elif size == "auto":
+            out[rows] = AUTO_PATCH_ELEMENTS * sides[rows]
+        else:
+            out[rows] = float(size)
+    return out

@@ -1,5 +1,7 @@
 """Patches shoot, elements receive: grouping, conservation, closed-box answers, and the same
 answer at two patch sizes."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -178,3 +180,35 @@ def test_a_split_emitter_draws_the_penumbra_a_centroid_shot_cannot():
         error = solver.state.radiosity[on_floor, 0] / expected - 1
         errors[split is not None] = float(error[penumbra].abs().max())
     assert errors[False] > 0.15 and errors[True] < 0.08, errors  # measured: 1.00 and 0.073
+
+
+def test_an_object_can_set_its_own_patch_size():
+    # The floating room's walls and floor at their default patches, the board's elements each
+    # shooting on its own, and the lamp in one patch.
+    from hemirad.scene.meshing import surface_objects
+
+    scene = hemirad.load_scene("floating")
+    board = next(i for i, o in enumerate(scene.objects) if o.name == "board.top")
+    lamp = next(i for i, o in enumerate(scene.objects) if o.name == "lamp")
+    scene.objects[board].patch_size, scene.objects[lamp].patch_size = "none", 5.0
+    solver = make_solver(scene)
+    try:
+        tree, mesh = solver.patches.tree, solver.mesh
+        of = torch.from_numpy(surface_objects(scene, mesh))[mesh.surface]
+        on_board, on_lamp = of == board, of == lamp
+        assert len(torch.unique(tree.patch[on_board])) == int(on_board.sum())  # one element a patch
+        assert len(torch.unique(tree.patch[on_lamp])) == 1 and int(on_lamp.sum()) > 1
+        others = ~(on_board | on_lamp)
+        assert len(torch.unique(tree.patch[others])) < int(others.sum()) / 3  # about 2 x 2 elements
+    finally:
+        solver.close()
+
+
+def test_a_bad_patch_size_is_one_paragraph_naming_the_key(tmp_path):
+    from hemirad.core.errors import SceneError
+
+    text = (Path(hemirad.__file__).parent / "scenes" / "floating.yaml").read_text()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text.replace("solver:\n", "solver:\n  patch_size: -1\n", 1))
+    with pytest.raises(SceneError, match=r"solver\.patch_size"):
+        hemirad.load_scene(bad)

@@ -38,7 +38,7 @@ from hemirad.scene.keys import Checker, closest, did_you_mean, join
 from hemirad.scene.meshfile import read_mesh_object
 from hemirad.scene.meshing import box_face_corners, quad_triangles
 from hemirad.scene.model import Box, FaceOverride, Material, MeshFile, Quad, Room, Scene, SceneObject
-from hemirad.scene.options import MAX_TRIANGLES, read_camera, read_refine, read_solver
+from hemirad.scene.options import MAX_TRIANGLES, read_camera, read_patch_size, read_refine, read_solver
 from hemirad.scene.yamlfile import parse_yaml
 
 #: How far (a fraction of its size) a quad's corners may lie off their mean plane. The
@@ -58,7 +58,7 @@ SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
 _TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver", "refine")
 _MATERIAL_KEYS = ("reflectance", "emission")
-_COMMON_KEYS = ("type", "name", "material", "element_size")
+_COMMON_KEYS = ("type", "name", "material", "element_size", "patch_size")
 _OBJECT_KEYS = {
     "room": _COMMON_KEYS + ("min", "max", "faces"),
     "box": _COMMON_KEYS + ("min", "max"),
@@ -249,6 +249,8 @@ class _Reader(Checker):
             size, size_key = self.object_size(spec, key)
             read = getattr(self, f"read_{kind}")
             objects.append(read(spec, key, name, material, size, size_key))
+            if "patch_size" in spec:
+                objects[-1].patch_size = read_patch_size(self, spec["patch_size"], f"{key}.patch_size")
         return objects
 
     def object_type(self, spec: dict, key: str) -> str:

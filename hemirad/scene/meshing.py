@@ -252,6 +252,14 @@ def _labels(scene: Scene) -> list[str]:
     return [n if names.count(n) == 1 else f"objects[{i}]" for i, n in enumerate(names)]
 
 
+def surface_objects(scene: Scene, mesh: Mesh) -> np.ndarray:
+    """(S,) int64 the index in ``scene.objects`` of each surface of ``build_mesh(scene)``'s mesh,
+    from the surface names (``<object>`` or ``<object>.<face or patch>``)."""
+    labels = {label: i for i, label in enumerate(_labels(scene))}
+    return np.asarray([labels[name] if name in labels else labels[name.rsplit(".", 1)[0]]
+                       for name in mesh.surface_names], dtype=np.int64)
+
+
 def build_mesh(scene: Scene) -> Mesh:
     """The initial mesh of a scene: one or more surfaces per object, in object order.
 

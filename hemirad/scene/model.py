@@ -49,6 +49,7 @@ class Room:
     element_size: float
     faces: dict[str, FaceOverride] = field(default_factory=dict)
     name: str = "room"
+    patch_size: float | str | None = None  # "auto", "none" or a length; None: the solver's
 
     FACE_NAMES = ("floor", "ceiling", "x_min", "x_max", "z_min", "z_max")
 
@@ -62,6 +63,7 @@ class Box:
     material: str
     element_size: float
     name: str = "box"
+    patch_size: float | str | None = None  # "auto", "none" or a length; None: the solver's
 
 
 @dataclass
@@ -72,6 +74,7 @@ class Quad:
     material: str
     element_size: float
     name: str = "quad"
+    patch_size: float | str | None = None  # "auto", "none" or a length; None: the solver's
 
 
 @dataclass
@@ -85,6 +88,7 @@ class MeshFile:
         (1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
     crease_angle: float = 30.0  # degrees: vertices are not shared across sharper edges
     name: str = "mesh"
+    patch_size: float | str | None = None  # "auto", "none" or a length; None: the solver's
     # the file as the loader read it (hemirad.scene.meshfile.MeshContents), so that meshing
     # does not parse it again; None: read when meshed
     contents: object = field(default=None, repr=False, compare=False)

@@ -81,10 +81,10 @@ def read_solver(check: Checker, v) -> SolverOptions:
     return opts
 
 
-def read_patch_size(check: Checker, value, key: str) -> float | str | None:
+def read_patch_size(check: Checker, value, key: str) -> float | str:
     """``auto``, ``none`` (every element shoots) or a side length > 0."""
-    if value in ("auto", "none", None):
-        return None if value in ("none", None) else "auto"
+    if value in ("auto", "none"):
+        return value
     return check.bounded(value, key, "auto, none or a length > 0", lambda x: 0 < x < 1e15)
 
 
