@@ -56,17 +56,9 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
 def patch_sizes(scene: Scene, mesh: Mesh) -> np.ndarray:
     """(T,) the patch side each element asks for: its object's ``patch_size``, else the
     solver's; ``auto`` is ``AUTO_PATCH_ELEMENTS`` element sides, ``none`` 0 (it shoots alone)."""
-    sides = element_sides(mesh)
-    object_of = surface_objects(scene, mesh)  # (S,) the object of each surface
-    out = np.empty(mesh.num_elements)
-    surface = mesh.surface.cpu().numpy()
-    for index, obj in enumerate(scene.objects):
-        size = obj.patch_size if obj.patch_size is not None else scene.solver.patch_size
-        rows = object_of[surface] == index
-        if size in (None, "none"):
-            out[rows] = 0.0
-        elif size == "auto":
-            out[rows] = AUTO_PATCH_ELEMENTS * sides[rows]
-        else:
-            out[rows] = float(size)
-    return out
+    asked = [obj.patch_size if obj.patch_size is not None else scene.solver.patch_size for obj in scene.objects]
+    # per object: a multiple of the element side (auto) and a length (a number), one of them 0
+    factor = np.asarray([AUTO_PATCH_ELEMENTS if size == "auto" else 0.0 for size in asked])
+    length = np.asarray([0.0 if size in ("auto", "none", None) else float(size) for size in asked])
+    obj = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]  # (T,)
+    return factor[obj] * element_sides(mesh) + length[obj]

@@ -203,8 +203,10 @@ CONVERGENCE_SCENES = ("cornell_box", "office", "floating")
 CONVERGENCE_TARGETS = (1e-2, 1e-3, 1e-4)
 
 
-def converge(name: str, targets, configuration: str, device: torch.device, max_shots: int) -> list[tuple]:
-    """(shots, seconds, renders) at each unshot target for one scene, solved once onwards."""
+def converge(name: str, targets, configuration: str, device: torch.device, max_shots: int
+             ) -> tuple[int, int | None, list[tuple]]:
+    """One scene solved onwards through the unshot targets: its elements, its patches (None
+    when elements shoot), and (shots, seconds, renders) at each target."""
     scene = hemirad.load_scene(name)
     if configuration == "paper":
         scene.solver.paper()
@@ -218,7 +220,8 @@ def converge(name: str, targets, configuration: str, device: torch.device, max_s
             out.append((solver.state.shots, time.perf_counter() - start, solver.renderer.renders))
     finally:
         solver.close()
-    return out
+    patches = solver.patches.tree.num_patches if solver.patches is not None else None
+    return solver.mesh.num_elements, patches, out
 
 
 def convergence(scenes, targets, device: torch.device, max_shots: int = 400_000) -> list[str]:
@@ -229,17 +232,9 @@ def convergence(scenes, targets, device: torch.device, max_shots: int = 400_000)
              "|---|---|---:|---:|" + "---:|" * len(targets)]
     for name in scenes:
         for configuration in ("paper", "default"):
-            scene = hemirad.load_scene(name)
-            patches = "-"
-            if configuration == "default":
-                probe = make_solver(scene, device=device)
-                patches, elements = probe.patches.tree.num_patches, probe.mesh.num_elements
-                probe.close()
-            else:
-                elements = build_mesh(scene).num_elements
-            cells = [f"{shots} ({renders}) / {seconds:.1f} s" for shots, seconds, renders in
-                     converge(name, targets, configuration, device, max_shots)]
-            lines.append(f"| {name} | {configuration} | {elements} | {patches} | " + " | ".join(cells) + " |")
+            elements, patches, reached = converge(name, targets, configuration, device, max_shots)
+            cells = [f"{shots} ({renders}) / {seconds:.1f} s" for shots, seconds, renders in reached]
+            lines.append(f"| {name} | {configuration} | {elements} | {patches or '-'} | " + " | ".join(cells) + " |")
             print(lines[-1], flush=True)
     return lines
 

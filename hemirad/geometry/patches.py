@@ -34,7 +34,6 @@ class PatchTree:
         centroid, normal, tangent: (N, 3) float64 where a node shoots from: the area-weighted
             centroid of its elements, their plane's unit normal, and an in-plane direction
             that fixes its hemicube's frame.
-        area: (N,) float64.
         leaf_node: (T,) int64 the node of each leaf position (a single initial element).
     """
 
@@ -48,7 +47,6 @@ class PatchTree:
     centroid: torch.Tensor
     normal: torch.Tensor
     tangent: torch.Tensor
-    area: torch.Tensor
     leaf_node: torch.Tensor
 
     @property
@@ -132,7 +130,7 @@ class _TreeBuilder:
         self.centroids, self.normals, self.areas, self.edges = centroids, normals, areas, edges
         self.leaf_order: list[int] = []
         self.leaf_nodes: list[int] = []
-        self.rows: list[list] = []  # per node: lo, hi, children, centroid, normal, tangent, area
+        self.rows: list[list] = []  # per node: lo, hi, children, centroid, normal, tangent
 
     def node(self, members: np.ndarray, u: np.ndarray, v: np.ndarray) -> int:
         index = len(self.rows)
@@ -144,20 +142,19 @@ class _TreeBuilder:
             self.leaf_nodes.append(index)
             # a single element shoots from where an element's own hemicube is: its centroid,
             # its normal, its first edge
-            self.rows[index] = [lo, lo + 1, [], self.centroids[e], self.normals[e], self.edges[e], self.areas[e]]
+            self.rows[index] = [lo, lo + 1, [], self.centroids[e], self.normals[e], self.edges[e]]
             return index
         parts = _quadrants(self.centroids[members] @ np.stack([u, v]).T)
         children = [self.node(members[part], u, v) for part in parts]
         weights = self.areas[members]
-        area = float(weights.sum())
-        centroid = (self.centroids[members] * weights[:, None]).sum(0) / area
+        centroid = (self.centroids[members] * weights[:, None]).sum(0) / weights.sum()
         normal = (self.normals[members] * weights[:, None]).sum(0)
         normal /= np.linalg.norm(normal)
-        self.rows[index] = [lo, len(self.leaf_order), children, centroid, normal, u, area]
+        self.rows[index] = [lo, len(self.leaf_order), children, centroid, normal, u]
         return index
 
     def finish(self, roots: np.ndarray, patch: np.ndarray) -> PatchTree:
-        lo, hi, children, centroid, normal, tangent, area = (list(col) for col in zip(*self.rows))
+        lo, hi, children, centroid, normal, tangent = (list(col) for col in zip(*self.rows))
         leaf = np.empty(len(self.leaf_order), dtype=np.int64)
         leaf[np.asarray(self.leaf_order, dtype=np.int64)] = np.arange(len(self.leaf_order))
         child_start = np.concatenate([[0], np.cumsum([len(c) for c in children])])
@@ -166,8 +163,7 @@ class _TreeBuilder:
         return PatchTree(torch.from_numpy(leaf), torch.from_numpy(patch), torch.from_numpy(roots),
                          torch.tensor(lo), torch.tensor(hi), torch.from_numpy(child_start), torch.from_numpy(child_ids),
                          torch.tensor(np.stack(centroid), **f64), torch.tensor(np.stack(normal), **f64),
-                         torch.tensor(np.stack(tangent), **f64), torch.tensor(area, **f64),
-                         torch.tensor(self.leaf_nodes, dtype=torch.int64))
+                         torch.tensor(np.stack(tangent), **f64), torch.tensor(self.leaf_nodes, dtype=torch.int64))
 
 
 def _quadrants(xy: np.ndarray) -> list[np.ndarray]:

@@ -64,8 +64,9 @@ def incident_power(form_factors: torch.Tensor, shot_power: torch.Tensor, near: N
     if near is None or len(near.rows) == 0:
         return incident
     spread = near.weights.T @ member_power  # (n, 3)
-    total = incident.index_select(0, near.rows).sum(0)  # (3,) what G's hemicube gave them
-    scale = torch.where(spread.sum(0) > 0, total / spread.sum(0).clamp(min=1e-300), torch.zeros_like(total))
-    keep = spread.sum(0) <= 0  # nothing to spread by (a channel without power): G's own numbers
-    redistributed = torch.where(keep[None, :], incident.index_select(0, near.rows), spread * scale[None, :])
+    from_point = incident.index_select(0, near.rows)
+    spread_total = spread.sum(0)  # (3,)
+    spreads = spread_total > 0  # a channel with nothing to spread by (no power in it) keeps G's numbers
+    scale = torch.where(spreads, from_point.sum(0) / spread_total.clamp(min=1e-300), 0.0)  # keeps G's total
+    redistributed = torch.where(spreads[None, :], spread * scale[None, :], from_point)
     return incident.index_copy(0, near.rows, redistributed)

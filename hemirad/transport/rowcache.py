@@ -20,12 +20,11 @@ SLAB_BYTES = 64 << 20
 
 @dataclass
 class _Slab:
-    """Storage for many rows, filled front to back; dropped once no row lives in it."""
+    """Storage for many rows, filled front to back; freed with the last row that lives in it."""
 
     index: torch.Tensor  # (n,) int32
     values: torch.Tensor  # (n,) float64
     used: int = 0
-    live: int = 0
 
 
 @dataclass
@@ -94,14 +93,11 @@ class FormFactorRows:
         slab.values[slab.used:slab.used + count] = values
         self._rows[shooter] = _Row(slab, slab.used, count)
         slab.used += count
-        slab.live += count
         self.nbytes += ENTRY_BYTES * count
 
     def _drop(self, shooter: Hashable) -> None:
         row = self._rows.pop(shooter)
-        row.slab.live -= row.count
         self.nbytes -= ENTRY_BYTES * row.count
-        # a slab no row lives in is freed with its last reference (the current one is reused)
 
     def clear(self) -> None:
         """Forget every row (the mesh changed)."""

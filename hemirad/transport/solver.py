@@ -282,10 +282,11 @@ class ProgressiveSolver:
                     shot = shot + self.reflectance.index_select(0, members) * ambient
                 member_power = shot * self.areas.index_select(0, members)[:, None]
                 shot_power = member_power.sum(0)
-                # by the node's initial elements (the near field's sources), split or not
-                lo, hi = int(patches.tree.lo[node]), int(patches.tree.hi[node])
-                leaf_power = torch.zeros(hi - lo, 3, dtype=shot.dtype, device=self.device).index_add_(
-                    0, patches.leaf.index_select(0, members) - lo, member_power)
+                leaf_power = None
+                if self._spreads(node):  # by the node's initial elements (the near field's sources)
+                    lo, hi = int(patches.tree.lo[node]), int(patches.tree.hi[node])
+                    leaf_power = torch.zeros(hi - lo, 3, dtype=shot.dtype, device=self.device).index_add_(
+                        0, patches.leaf.index_select(0, members) - lo, member_power)
                 # taken before the shot: a refining shot may split the node's elements, whose
                 # children then inherit what is left
                 state.unshot.index_add_(0, members, -shot)
@@ -322,13 +323,19 @@ class ProgressiveSolver:
         self.state.unshot[shooter] = 0.0
         self.state.shots += 1
 
+    def _spreads(self, node: int) -> bool:
+        """Whether ``node``'s light to its near receivers is spread by its initial elements:
+        there is a near field, and the node has more than one element."""
+        tree = self.patches.tree
+        return self.near_reach > 0 and int(tree.hi[node]) - int(tree.lo[node]) > 1
+
     def _near_receivers(self, node: int, F: torch.Tensor) -> NearReceivers | None:
         """The receivers near ``node`` whose light its initial elements spread (``nearfield``),
-        kept while the mesh is unchanged; None for a single element, or without a near field."""
+        kept while the mesh is unchanged; None where it ``_spreads`` nothing."""
+        if not self._spreads(node):
+            return None
         tree = self.patches.tree
         lo, hi = int(tree.lo[node]), int(tree.hi[node])
-        if self.near_reach <= 0 or hi - lo < 2:
-            return None
         if node not in self._near:
             sources = tree.centroid.index_select(0, tree.leaf_node[lo:hi]).to(self.device)
             self._near[node] = near_receivers(self.mesh, self.patches.members(node), sources,

@@ -79,10 +79,6 @@ class HemicubeView:
     resolution: int
     relabelled_pixels: torch.Tensor | None = None
 
-    @property
-    def num_elements(self) -> int:
-        return len(self.normals)
-
     def copy(self) -> "HemicubeView":
         """The same view over copies of its tensors (made outside ``torch.inference_mode``,
         they are ones autograd may use)."""
