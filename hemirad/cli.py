@@ -127,6 +127,11 @@ def build_parser() -> argparse.ArgumentParser:
     refine.add_argument("--max-elements", type=_element_budget, help="element budget")
     refine.add_argument("--refine-shots", type=_positive_int, metavar="N",
                         help="refine during the first N shots, then shoot on the mesh they made (refine.shots)")
+    refine.add_argument("--tolerance", type=_fraction, metavar="E",
+                        help="criterion answer: refine until the estimated relative error is below E "
+                             "(refine.tolerance, default 0.01)")
+    refine.add_argument("--rounds", type=_depth, metavar="N",
+                        help="criterion answer: at most N refinements between converged solves (refine.rounds)")
     runs = parser.add_argument_group("long runs")
     runs.add_argument("--checkpoint-every", type=_non_negative_int, default=0, metavar="N",
                       help="write OUT/checkpoint.pt after every N shots, and when the run ends (default 0: never)")
@@ -187,7 +192,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
                       "threshold": ("--threshold", args.threshold),
                       "relative": ("--relative" if args.relative else "--absolute", args.relative),
                       "max_depth": ("--max-depth", args.max_depth), "max_elements": ("--max-elements", args.max_elements),
-                      "shots": ("--refine-shots", args.refine_shots)}
+                      "shots": ("--refine-shots", args.refine_shots), "tolerance": ("--tolerance", args.tolerance),
+                      "rounds": ("--rounds", args.rounds)}
     for block, options in (("solver", solver_options), ("refine", refine_options)):
         given = {k: v for k, (_, v) in options.items() if v is not None}
         setattr(scene, block, replace(getattr(scene, block), **given))

@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import math
 import os
@@ -22,6 +23,8 @@ import numpy as np
 import torch
 
 from hemirad import checkpoint as checkpoints
+from hemirad.adaptive.answer import RoundReport, estimated_relative_error, refine_by_answer
+from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver
 from hemirad.core.atomic import remove_stale_temporaries
 from hemirad.core.device import select_device
@@ -32,7 +35,7 @@ from hemirad.output import display, export, gltf
 from hemirad.output.meshview import pick_surface, surface_view
 from hemirad.output.render import render_view
 from hemirad.scene.meshing import build_mesh
-from hemirad.scene.model import Camera, Scene
+from hemirad.scene.model import ANSWER, Camera, Scene
 from hemirad.transport.gl import GLContext, check_image_size
 from hemirad.transport.solver import ProgressiveSolver, ShotReport, ambient_term
 
@@ -294,6 +297,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
         raise ValueError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
     if checkpoint is None and (checkpoint_every or resume):
         raise ValueError("checkpoint_every and resume need a checkpoint path")
+    _check_answer_refinement(scene, checkpoint)
     options = scene.solver
     device = select_device(options.device)
     check_gl_limits(scene, gpu=device.type == "cuda")
@@ -314,6 +318,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     solver = make_solver(scene, mesh, device=device)
     before = {"mesh": 0.0, "solve": 0.0}  # seconds spent by the runs this one continues
     resumed_from = None
+    rounds, answer_refiner = None, None
     try:
         check_before_solving(scene, mesh, solver)
         if saved is not None:
@@ -327,16 +332,45 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
         if checkpoint is not None:
             saver = _CheckpointWriter(checkpoint, fingerprint, checkpoint_every, solver, mesh.num_elements, elapsed,
                                       None if saved is None else solver.state.shots)
-        state = solver.run(options.max_shots, options.unshot_fraction,
-                           progress if saver is None else saver.after_shot(progress))
+        if scene.refine.by_answer:
+            rounds, answer_refiner = _refine_by_answer(scene, solver, progress)
+            state = solver.state
+        else:
+            state = solver.run(options.max_shots, options.unshot_fraction,
+                               progress if saver is None else saver.after_shot(progress))
         if saver is not None:
             saver.finish()
     finally:
         solver.close()
     final = solver.mesh.to("cpu")
-    stats = _stats(scene, solver, final, mesh.num_elements, elapsed(), resumed_from)
+    stats = _stats(scene, solver, final, mesh.num_elements, elapsed(), resumed_from, rounds, answer_refiner)
     return Result(scene, final, state.radiosity.cpu(), state.unshot.cpu(), solver.reflectance.cpu(),
                   solver.emission.cpu(), stats)
+
+
+def _check_answer_refinement(scene: Scene, checkpoint) -> None:
+    """Refinement judged on the answer needs patches (it regathers what each node sent) and
+    does not yet checkpoint its rounds."""
+    if not scene.refine.by_answer:
+        return
+    if scene.solver.patch_size in (None, "none"):
+        raise _key_error(scene, "refine.criterion", "a per-shot criterion when every element shoots "
+                         "(solver.patch_size none)", ANSWER, "Refinement judged on the answer regathers what "
+                         "each patch has sent; use solver.patch_size auto, or another criterion.")
+    if checkpoint is not None:
+        raise HemiradInputError("Checkpoints (--checkpoint-every, --resume) are not yet available with "
+                                "refine.criterion answer, whose rounds split the mesh between converged solves; "
+                                "run without them, or with a per-shot criterion.")
+
+
+def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress) -> tuple[list[RoundReport], Refiner]:
+    """Shoot to the stopping rule and refine where the answer is worst, in rounds
+    (``adaptive.answer``); returns the rounds and the refiner that split."""
+    options, refine = scene.solver, scene.refine
+    refiner = Refiner(refine, solver.emission)
+    reports = refine_by_answer(solver, refiner, refine.max_elements, refine.tolerance, refine.rounds,
+                               lambda: solver.run(options.max_shots, options.unshot_fraction, progress))
+    return reports, refiner
 
 
 class _CheckpointWriter:
@@ -374,9 +408,12 @@ class _CheckpointWriter:
 
 
 def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_elements: int, seconds: dict,
-           resumed_from: int | None) -> dict:
-    """What stats.json says of a finished solve; ``final``: its mesh on the CPU."""
-    state, refiner = solver.state, solver.refiner
+           resumed_from: int | None, rounds: list[RoundReport] | None = None,
+           answer_refiner: Refiner | None = None) -> dict:
+    """What stats.json says of a finished solve; ``final``: its mesh on the CPU; ``rounds``
+    and ``answer_refiner``: those of refinement judged on the answer."""
+    state = solver.state
+    refiner = solver.refiner or answer_refiner
     return {
         "scene": str(scene.source) if scene.source else None,
         "elements": final.num_elements,
@@ -392,7 +429,10 @@ def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_element
         "refine": {"pattern": scene.refine.pattern, "criterion": scene.refine.criterion,
                    "threshold": scene.refine.threshold, "relative": scene.refine.relative,
                    "absolute_threshold": refiner.threshold if refiner else None,
-                   "splits": refiner.splits if refiner else 0},
+                   "splits": refiner.splits if refiner else 0, "tolerance": scene.refine.tolerance if scene.refine.by_answer else None,
+                   "rounds": [dataclasses.asdict(r) for r in rounds] if rounds is not None else None},
+        # the estimated relative RMS error of the picture (``adaptive.answer``), for every run
+        "estimated_error": estimated_relative_error(final, state.radiosity.cpu()),
         "largest_angle_degrees": angle_quality(final),
         "emitted_power": solver.emitted_power.tolist(),
         # signed: overshooting leaves some unshot radiosity negative; emitted = absorbed + escaped + unshot

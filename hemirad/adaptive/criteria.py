@@ -15,7 +15,7 @@ import torch
 
 from hemirad.geometry.analytic import point_to_triangles
 from hemirad.geometry.mesh import Mesh
-from hemirad.scene.model import CRITERION_NAMES
+from hemirad.scene.model import SHOT_CRITERION_NAMES
 
 
 @dataclass
@@ -162,6 +162,6 @@ CRITERIA: dict[str, Criterion] = {
     "neighbor_difference": Criterion(neighbor_difference_score, None),
     "uniform": Criterion(uniform_score, None, radiosity_units=False),
 }
-if tuple(CRITERIA) != CRITERION_NAMES:  # the scene's vocabulary and the registry are one list
-    raise RuntimeError(f"hemirad.scene.model.CRITERION_NAMES {CRITERION_NAMES} and the criteria defined here "
+if tuple(CRITERIA) != SHOT_CRITERION_NAMES:  # the scene's vocabulary and the registry are one list
+    raise RuntimeError(f"hemirad.scene.model.SHOT_CRITERION_NAMES {SHOT_CRITERION_NAMES} and the criteria defined here "
                        f"{tuple(CRITERIA)} differ; a criterion is named in both, in the same order")

@@ -34,9 +34,11 @@ class Refiner:
         if options.pattern not in CHILDREN:
             raise ValueError(f"unknown split pattern {options.pattern!r}")
         self.options = options
-        self.criterion = CRITERIA[options.criterion]
+        # None for refinement judged on the answer (``answer.py``), which uses this object's
+        # split pattern, grading and limits only
+        self.criterion = CRITERIA.get(options.criterion)
         self.threshold = options.threshold
-        if options.relative and self.criterion.radiosity_units:
+        if options.relative and self.criterion is not None and self.criterion.radiosity_units:
             self.threshold *= float(luminance(emission).max())
         self.children = CHILDREN[options.pattern]
         self.relabel, self.bound = relabel, bound

@@ -14,10 +14,14 @@ import torch
 
 from hemirad.geometry.patterns import NO_REFINEMENT
 
-#: The refinement criteria by name: what a scene's ``refine.criterion`` (and ``--criterion``)
-#: may be. Each is defined in ``hemirad.adaptive.criteria.CRITERIA``, whose keys are checked
-#: against these (the loader, a layer below, reads the names from here).
-CRITERION_NAMES = ("gradient", "receiver", "partial_visibility", "neighbor_difference", "uniform")
+#: The per-shot refinement criteria by name. Each is defined in
+#: ``hemirad.adaptive.criteria.CRITERIA``, whose keys are checked against these (the loader, a
+#: layer below, reads the names from here).
+SHOT_CRITERION_NAMES = ("gradient", "receiver", "partial_visibility", "neighbor_difference", "uniform")
+#: What a scene's ``refine.criterion`` (and ``--criterion``) may be: a per-shot criterion, or
+#: ``answer``: refine between converged solves where the solution is worst (``adaptive.answer``).
+ANSWER = "answer"
+CRITERION_NAMES = SHOT_CRITERION_NAMES + (ANSWER,)
 
 
 @dataclass
@@ -143,10 +147,19 @@ class RefineOptions:
     interior: bool = True  # gradient terms, for accuracy studies
     shadow_edges: bool = True
     view_surface: str | None = None  # surface shown in mesh.png; default: the floor
+    # criterion "answer": stop refining when the estimated relative RMS error is below
+    # ``tolerance``, or after ``rounds`` refinements (each at most doubles the elements)
+    tolerance: float = 0.01
+    rounds: int = 3
 
     @property
     def enabled(self) -> bool:
         return self.pattern != NO_REFINEMENT
+
+    @property
+    def by_answer(self) -> bool:
+        """Refinement between converged solves, judged on the solution (``adaptive.answer``)."""
+        return self.enabled and self.criterion == ANSWER
 
 
 @dataclass

@@ -15,7 +15,7 @@ _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot",
                 "shooter_split", "cache_mb")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
-                "interior", "shadow_edges", "view_surface", "shots")
+                "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds")
 
 
 def read_camera(check: Checker, v) -> Camera:
@@ -115,6 +115,11 @@ def read_refine(check: Checker, v) -> RefineOptions:
     if "shots" in m:
         opts.shots = None if m["shots"] in (None, "none") else check.integer(
             m["shots"], "refine.shots", "a whole number >= 1 or none", 1)
+    if "tolerance" in m:
+        opts.tolerance = check.bounded(m["tolerance"], "refine.tolerance",
+                                       "a relative error in (0, 1), such as 0.01", lambda x: 0 < x < 1)
+    if "rounds" in m:
+        opts.rounds = check.integer(m["rounds"], "refine.rounds", "a whole number from 0 to 16", 0, 16)
     if not (opts.interior or opts.shadow_edges):
         check.fail("refine.interior", "at least one of interior and shadow_edges to be true", False)
     return opts

@@ -37,16 +37,18 @@ class NearReceivers:
 
 
 def near_receivers(mesh: Mesh, members: torch.Tensor, sources: torch.Tensor, point: torch.Tensor,
-                   normal: torch.Tensor, form_factors: torch.Tensor, reach: float) -> NearReceivers:
+                   normal: torch.Tensor, form_factors: torch.Tensor, reach: float,
+                   among: torch.Tensor | None = None) -> NearReceivers:
     """The near receivers of the node whose (K,) ``members`` shoot from ``point`` (3,) along
     ``normal`` (3,), and their weights from the (k, 3) ``sources`` (its initial elements'
-    centroids), given the node's hemicube ``form_factors`` (T,)."""
-    centroids = mesh.centroids
+    centroids), given the node's hemicube ``form_factors`` (T,); only those among the (R,)
+    elements ``among`` when given."""
     radius = float((mesh.corners_of(members).reshape(-1, 3) - point).norm(dim=1).max())
-    near = (centroids - point).norm(dim=1) < reach * radius
-    near[members] = False
-    near &= form_factors > 0  # what G does not see at all stays unseen (occluded, or behind)
-    rows = flatnonzero(near)
+    candidates = torch.arange(mesh.num_elements, device=point.device) if among is None else among
+    near = (mesh.centroids.index_select(0, candidates) - point).norm(dim=1) < reach * radius
+    near &= ~torch.isin(candidates, members)
+    near &= form_factors.index_select(0, candidates) > 0  # what G does not see at all stays unseen (occluded, or behind)
+    rows = candidates[near]
     corners = mesh.corners_of(rows)  # (n, 3, 3)
     from_point = point_to_triangles(point, normal, corners)  # (n,)
     visibility = torch.where(from_point > 0, form_factors.index_select(0, rows) / from_point.clamp(min=1e-300),

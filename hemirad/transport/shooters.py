@@ -59,6 +59,11 @@ class PatchShooters:
             their parent's).
         cuts: per patch that shot, the nodes its power leaves from.
         shooter_splits: nodes that shoot from their children instead of themselves.
+        sent: (N, 3) the power each node has shot so far, over all its shots.
+        sent_by_leaf: (T0, 3) the same per initial element (by leaf position): what each
+            shot's power was made of, which spreads a node's light to its near receivers.
+            With ``sent``, what every receiver got from every node can be recomputed on a
+            refined mesh (``adaptive.answer``).
     """
 
     def __init__(self, tree: PatchTree, device: torch.device, split_test: ShooterTest | None = None):
@@ -68,6 +73,8 @@ class PatchShooters:
         self._patch = GrowingRows(tree.patch.to(device))
         self.cuts: dict[int, list[int]] = {}
         self.shooter_splits = 0
+        self.sent = torch.zeros(tree.num_nodes, 3, dtype=torch.float64, device=device)
+        self.sent_by_leaf = torch.zeros(len(tree.leaf), 3, dtype=torch.float64, device=device)
 
     @property
     def leaf(self) -> torch.Tensor:
@@ -81,6 +88,11 @@ class PatchShooters:
         """Follow a split of the receivers: new element i lies in old element ``parent[i]`` (T',)."""
         self._leaf.inherit(parent)
         self._patch.inherit(parent)
+
+    def record(self, node: int, members: torch.Tensor, member_power: torch.Tensor) -> None:
+        """Count a shot of ``node`` whose (K,) ``members`` shot (K, 3) ``member_power``."""
+        self.sent[node] += member_power.sum(0)
+        self.sent_by_leaf.index_add_(0, self.leaf.index_select(0, members), member_power)
 
     def strongest(self, power: torch.Tensor) -> int | None:
         """The patch whose elements hold the most unshot power (its magnitude: overshooting
@@ -121,7 +133,8 @@ class PatchShooters:
         nodes = torch.tensor([n for p in patches for n in self.cuts[p]], dtype=torch.int64)
         return {"leaf": self.leaf.cpu().clone(), "patch": self.patch.cpu().clone(),
                 "cut_patches": torch.tensor(patches, dtype=torch.int64), "cut_sizes": sizes, "cut_nodes": nodes,
-                "shooter_splits": self.shooter_splits}
+                "shooter_splits": self.shooter_splits, "sent": self.sent.cpu().clone(),
+                "sent_by_leaf": self.sent_by_leaf.cpu().clone()}
 
     def load_state_dict(self, state: dict, num_elements: int) -> None:
         """Continue from ``state_dict()``'s output for a mesh of ``num_elements``; ValueError if it does not fit."""
@@ -136,3 +149,8 @@ class PatchShooters:
         self._leaf, self._patch = GrowingRows(leaf.to(device)), GrowingRows(patch.to(device))
         self.cuts = {int(p): part.tolist() for p, part in zip(patches, torch.split(nodes, sizes.tolist()))}
         self.shooter_splits = int(state["shooter_splits"])
+        for name in ("sent", "sent_by_leaf"):
+            rows, want = state[name], getattr(self, name)
+            if not isinstance(rows, torch.Tensor) or rows.shape != want.shape or rows.dtype != torch.float64:
+                raise ValueError(f"patches.{name} must be a {tuple(want.shape)} float64 tensor")
+        self.sent, self.sent_by_leaf = state["sent"].to(device), state["sent_by_leaf"].to(device)

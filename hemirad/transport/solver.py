@@ -290,9 +290,10 @@ class ProgressiveSolver:
                 # taken before the shot: a refining shot may split the node's elements, whose
                 # children then inherit what is left
                 state.unshot.index_add_(0, members, -shot)
+                patches.record(node, members, member_power)
             F = self._shot_form_factors(node, shot_power)
             with self.profiler.phase("update"):
-                near = self._near_receivers(node, F)
+                near = self.near_receivers_of(node, F)
                 self._receive_incident(incident_power(F, shot_power, near, leaf_power), shot_power)
         state.shots += 1
         return patch
@@ -329,19 +330,23 @@ class ProgressiveSolver:
         tree = self.patches.tree
         return self.near_reach > 0 and int(tree.hi[node]) - int(tree.lo[node]) > 1
 
-    def _near_receivers(self, node: int, F: torch.Tensor) -> NearReceivers | None:
+    def near_receivers_of(self, node: int, F: torch.Tensor, among: torch.Tensor | None = None
+                          ) -> NearReceivers | None:
         """The receivers near ``node`` whose light its initial elements spread (``nearfield``),
-        kept while the mesh is unchanged; None where it ``_spreads`` nothing."""
+        kept while the mesh is unchanged; None where it ``_spreads`` nothing. With ``among``
+        (R,), only those among these elements, and not kept."""
         if not self._spreads(node):
             return None
+        if among is None and node in self._near:
+            return self._near[node]
         tree = self.patches.tree
         lo, hi = int(tree.lo[node]), int(tree.hi[node])
-        if node not in self._near:
-            sources = tree.centroid.index_select(0, tree.leaf_node[lo:hi]).to(self.device)
-            self._near[node] = near_receivers(self.mesh, self.patches.members(node), sources,
-                                              tree.centroid[node].to(self.device), tree.normal[node].to(self.device),
-                                              F, self.near_reach)
-        return self._near[node]
+        sources = tree.centroid.index_select(0, tree.leaf_node[lo:hi]).to(self.device)
+        near = near_receivers(self.mesh, self.patches.members(node), sources, tree.centroid[node].to(self.device),
+                              tree.normal[node].to(self.device), F, self.near_reach, among)
+        if among is None:
+            self._near[node] = near
+        return near
 
     def _receive_incident(self, incident: torch.Tensor, shot_power: torch.Tensor) -> None:
         """Hand every receiver what reaches its front, ``incident`` (T, 3) power, of a shot of

@@ -1,0 +1,177 @@
+"""Refinement judged on the answer: split where the converged solution is least well
+represented, then give the new elements the light they really receive (docs/DESIGN.md §3.8).
+
+Per-shot criteria (``criteria.py``) judge one shot at a time against a fixed threshold;
+they never see the smooth variation over large elements that dominates an image's error,
+and a threshold cannot be tuned to a mesh size. Here the judge is the solution itself:
+
+1. **Estimate.** An element's error is how far its constant radiosity B_j lies from what the
+   displayed, Gouraud-shaded mesh shows over it: the mean of its corners' vertex values
+   (area-weighted means of the elements around each vertex, as ``output.display`` shades).
+   That difference vanishes where radiosity varies linearly (the shading follows it) and
+   grows with curvature and at shadow edges, where the picture is wrong.
+2. **Split** the elements of the largest squared error times area (their share of the
+   image's squared error) first, as many as the round's element budget allows.
+3. **Regather.** A split element's children inherit its radiosity; each child then gets
+   what every shooter has sent so far reaching it: each node that shot is rendered on the
+   refined mesh (its row is kept for the shots that follow) and its accumulated power
+   (``PatchShooters.sent``) is spread by its form factors to the children, as its shots
+   would have spread it. Per split element the children's total is scaled to what the
+   element had received, so the redistribution moves light between siblings and creates
+   none: power is conserved exactly, and what a child gained or lost over its inherited
+   value joins its unshot radiosity, to be shot on.
+4. **Shoot on** to the stopping rule, and repeat while the budget and the tolerance allow.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+import torch
+
+from hemirad.core.colour import luminance
+from hemirad.core.fastops import flatnonzero
+from hemirad.geometry.mesh import Mesh
+
+if TYPE_CHECKING:
+    from hemirad.adaptive.refine import Refiner
+    from hemirad.transport.solver import ProgressiveSolver
+
+
+def element_errors(mesh: Mesh, radiosity: torch.Tensor) -> torch.Tensor:
+    """(T,) each element's estimated error: |luminance of B_j - the mean of the vertex values
+    at its corners|, the vertex values area-weighted means of the elements around each vertex.
+
+    Args:
+        mesh: the elements; vertices are shared within a surface only, so the mean does not
+            blend across a room's corners.
+        radiosity: (T, 3) the radiosity shown.
+    """
+    value = luminance(radiosity)  # (T,)
+    corner_vertex = mesh.triangles.reshape(-1)
+    weight = mesh.areas.repeat_interleave(3)
+    sums = value.new_zeros(len(mesh.vertices)).index_add_(0, corner_vertex, weight * value.repeat_interleave(3))
+    weights = value.new_zeros(len(mesh.vertices)).index_add_(0, corner_vertex, weight)
+    vertex = sums / weights.clamp(min=1e-300)
+    shown = vertex[mesh.triangles].mean(dim=1)  # (T,)
+    return (value - shown).abs()
+
+
+def estimated_relative_error(mesh: Mesh, radiosity: torch.Tensor, errors: torch.Tensor | None = None) -> float:
+    """The estimate of the picture's relative RMS error: sqrt(sum A e^2 / sum A L^2) over the
+    elements (``element_errors`` e, luminance L), as the accuracy study measures its
+    relative MSE over the pixels of the surfaces."""
+    e = element_errors(mesh, radiosity) if errors is None else errors
+    L = luminance(radiosity)
+    return float(((mesh.areas * e * e).sum() / (mesh.areas * L * L).sum().clamp(min=1e-300)).sqrt())
+
+
+def select_by_error(errors: torch.Tensor, areas: torch.Tensor, splittable: torch.Tensor, count: int,
+                    floor: float = 0.0) -> torch.Tensor:
+    """(T,) bool: the ``count`` splittable elements of the largest ``errors``^2 x ``areas``
+    (their share of the squared error), those of error over ``floor`` only; ties keep
+    index order."""
+    score = torch.where(splittable & (errors > floor), errors * errors * areas, torch.zeros_like(errors))
+    chosen = torch.zeros_like(splittable)
+    candidates = int((score > 0).sum())
+    if count <= 0 or candidates == 0:
+        return chosen
+    order = torch.argsort(score, descending=True, stable=True)[:min(count, candidates)]
+    chosen[order] = True
+    return chosen
+
+
+def regather(solver: "ProgressiveSolver", parent: torch.Tensor, split: torch.Tensor,
+             received: torch.Tensor) -> None:
+    """Give the children of split elements the light every node has sent them so far.
+
+    Args:
+        solver: continuing on the refined mesh (``adopt_split`` done), with patches.
+        parent: (T',) the element of the previous mesh each element lies in.
+        split: (S,) the previous mesh's elements that were split.
+        received: (S, 3) the power each of them had received (its B less its emission, times
+            its area over its reflectance; 0 where it reflects nothing).
+    """
+    patches, state = solver.patches, solver.state
+    changed = flatnonzero(torch.isin(parent, split))  # (C,) the children, first ones included
+    which = torch.searchsorted(split, parent.index_select(0, changed))  # (C,) index into split
+    gathered = torch.zeros(len(changed), 3, dtype=torch.float64, device=solver.device)
+    tree = patches.tree
+    for node in flatnonzero(patches.sent.abs().sum(1) > 0).tolist():
+        F = solver.form_factors_of(node)  # rendered on the refined mesh and kept
+        gathered += F.index_select(0, changed)[:, None] * patches.sent[node]
+        near = solver.near_receivers_of(node, F, among=changed)
+        if near is not None and len(near.rows):
+            # near the node, its light as its initial elements sent it (``nearfield``), unscaled:
+            # the per-element scaling below keeps the totals
+            lo, hi = int(tree.lo[node]), int(tree.hi[node])
+            spread = near.weights.T @ patches.sent_by_leaf[lo:hi]  # (n, 3)
+            gathered[torch.searchsorted(changed, near.rows)] = spread
+    # each split element's children share exactly what it had received
+    total = torch.zeros_like(received).index_add_(0, which, gathered)
+    scale = torch.where(total > 0, received / total.clamp(min=1e-300), torch.zeros_like(total))
+    area = solver.areas.index_select(0, changed)
+    area_share = area / torch.zeros_like(received[:, 0]).index_add_(0, which, area).index_select(0, which)
+    share = torch.where((total > 0).index_select(0, which), gathered * scale.index_select(0, which),
+                        received.index_select(0, which) * area_share[:, None])
+    rho = solver.reflectance.index_select(0, changed)
+    radiosity = solver.emission.index_select(0, changed) + rho * share / area[:, None]
+    reflects = rho > 0  # a black element keeps its inherited value (its emission)
+    radiosity = torch.where(reflects, radiosity, state.radiosity.index_select(0, changed))
+    state.unshot.index_add_(0, changed, radiosity - state.radiosity.index_select(0, changed))
+    state.radiosity.index_copy_(0, changed, radiosity)
+
+
+@dataclass
+class RoundReport:
+    round: int
+    elements: int
+    split: int
+    estimated_error: float
+    shots: int
+
+
+def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elements: int, tolerance: float,
+                     rounds: int, shoot_on: Callable[[], None],
+                     report: Callable[[RoundReport], None] | None = None) -> list[RoundReport]:
+    """Alternate shooting to the stopping rule (``shoot_on``) and refining where the answer
+    is worst, until the estimated relative error is under ``tolerance``, the mesh has
+    ``max_elements``, or ``rounds`` refinements were made. Each round may at most double
+    the element count, so the estimate is renewed as the mesh learns.
+
+    ``refiner`` supplies the split pattern, the 2:1 grading and the depth and size limits.
+    Returns one report per round (the first is the unrefined solve)."""
+    reports = []
+    for index in range(rounds + 1):
+        shoot_on()
+        mesh = solver.mesh
+        shown = solver.state.radiosity  # the ambient term is negligible once converged
+        errors = element_errors(mesh, shown)
+        estimate = estimated_relative_error(mesh, shown, errors)
+        reports.append(RoundReport(index, mesh.num_elements, 0, estimate, solver.state.shots))
+        room = (max_elements - mesh.num_elements) // (refiner.children - 1)
+        count = min(room, mesh.num_elements // (refiner.children - 1))
+        if index == rounds or estimate <= tolerance or count <= 0:
+            break
+        splittable = refiner.splittable(mesh, torch.empty(0, dtype=torch.int64, device=solver.device))
+        chosen = select_by_error(errors, mesh.areas, splittable, count)
+        if not bool(chosen.any()):
+            break
+        refine_mesh(solver, refiner, chosen)
+        reports[-1].split = solver.mesh.num_elements - mesh.num_elements
+        if report is not None:
+            report(reports[-1])
+    return reports
+
+
+def refine_mesh(solver: "ProgressiveSolver", refiner: "Refiner", chosen: torch.Tensor) -> None:
+    """Split the ``chosen`` (T,) elements (and what grading adds), then ``regather``."""
+    mesh = solver.mesh
+    new_mesh, parent = refiner.split(mesh, chosen)
+    split = torch.unique(parent[mesh.num_elements:])  # sorted; a split element's index holds its first child
+    rho = solver.reflectance.index_select(0, split)
+    before = solver.state.radiosity.index_select(0, split) - solver.emission.index_select(0, split)
+    received = torch.where(rho > 0, before * mesh.areas.index_select(0, split)[:, None] / rho.clamp(min=1e-300),
+                           torch.zeros_like(before))
+    solver.adopt_split(new_mesh, parent)
+    regather(solver, parent, split, received)
