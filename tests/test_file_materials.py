@@ -65,8 +65,9 @@ def write_glb(path, white=WHITE + (1.0,), emissive_strength=STRENGTH, order=("wh
     for material in order:
         used, local = np.unique(by_material[material], return_inverse=True)
         positions = vertices[used].astype(np.float32)  # the box's coordinates are exact in float32
+        bounds = {"min": positions.min(0).tolist(), "max": positions.max(0).tolist()}  # glTF requires them
         for data, kind, component, extra in (
-                (positions.tobytes(), "VEC3", 5126, {"min": positions.min(0).tolist(), "max": positions.max(0).tolist()}),
+                (positions.tobytes(), "VEC3", 5126, bounds),
                 (local.astype(np.uint32).tobytes(), "SCALAR", 5125, {})):
             views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(data)})
             count = len(positions) if kind == "VEC3" else local.size

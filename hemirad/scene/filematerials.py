@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 import warnings
 from collections import Counter
@@ -176,22 +177,20 @@ def _numbers(v, n: int, where: str) -> tuple[float, ...]:
 # OBJ + MTL
 
 
+_MTLLIB = re.compile(r"^[ \t]*mtllib[ \t]+(.*?)[ \t]*$", re.MULTILINE)
+_USEMTL = re.compile(r"^[ \t]*usemtl(?:[ \t]+(.*?))?[ \t]*$", re.MULTILINE)
+_FACE = re.compile(r"^[ \t]*f[ \t]", re.MULTILINE)
+
+
 def obj_materials(text: str, obj_path: Path) -> FileMaterials:
     """The materials an OBJ's faces use: those its ``usemtl`` lines name, from the library
     its first ``mtllib`` names (relative to the OBJ), in the library's order."""
-    library, used = None, set()
-    current = None
-    for line in text.replace("\\\n", "").splitlines():
-        parts = line.split(None, 1)
-        if not parts:
-            continue
-        keyword, rest = parts[0], parts[1].strip() if len(parts) > 1 else ""
-        if keyword == "mtllib" and library is None:
-            library = rest
-        elif keyword == "usemtl":
-            current = rest
-        elif keyword == "f" and current is not None:
-            used.add(current)
+    text = text.replace("\r\n", "\n").replace("\\\n", "")
+    library = next((m.group(1) for m in _MTLLIB.finditer(text)), None)
+    statements = list(_USEMTL.finditer(text))
+    ends = [m.start() for m in statements[1:]] + [len(text)]
+    # a material is used when a face follows its usemtl before the next one
+    used = {m.group(1) or "" for m, end in zip(statements, ends) if _FACE.search(text, m.end(), end)}
     if not used:
         return NO_MATERIALS
     if not library:

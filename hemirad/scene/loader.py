@@ -18,13 +18,15 @@ The schema, all lengths in scene units::
       - {type: quad, corners: [[...], [...], [...], [...]], material: lamp}
       - {type: mesh, file: chair.obj, material: white, crease_angle: 30,
          transform: {translate: [...], rotate: [rx, ry, rz], scale: 1.0}}
+      - {type: mesh, name: shelf, file: shelf.glb}  # no material: the file's (filematerials.py),
+                                                    # shelf.<name>, or materials.<name> if defined
     camera: {position: [...], look_at: [...], up: [0, 1, 0], fov: 40, width: 512,
              height: 512, exposure: auto, supersample: 3}
     solver: {max_shots: 500, unshot_fraction: 1.0e-3, resolution: 128, ambient: true}
 
 This module reads the top level, materials and objects; the checks of single values are in
 ``keys.py``, the YAML dialect in ``yamlfile.py``, mesh objects and their files in
-``meshfile.py``, and the camera, solver and refine blocks in ``options.py``.
+``meshfile.py``, the materials of mesh files in ``filematerials.py``, and the camera, solver and refine blocks in ``options.py``.
 """
 from __future__ import annotations
 
@@ -405,7 +407,7 @@ class _Reader(Checker):
     def check_light(self, objects: list[SceneObject]):
         used = {o.material for o in objects if o.material is not None}
         used |= {f.material for o in objects if isinstance(o, Room) for f in o.faces.values() if f.material}
-        used |= {n for o in objects if isinstance(o, MeshFile) and o.material is None for n in o.file_materials.values()}
+        used |= {n for o in objects if isinstance(o, MeshFile) for n in o.file_materials.values()}
         materials = {**self.materials, **self.file_materials}
         if any(max(materials[n].emission) > 0 for n in used):
             return

@@ -1,4 +1,5 @@
-"""Mesh files: read once per load (trimesh), and a scene's ``type: mesh`` objects checked.
+"""Mesh files: read once per load (trimesh) with the materials a glTF or OBJ + MTL file gives
+each face (``filematerials``), and a scene's ``type: mesh`` objects checked.
 
 The loader reads each mesh file to check it and estimate its element count, and keeps what
 it read on the ``MeshFile`` (``contents``); meshing and the checkpoint's fingerprint use
@@ -11,6 +12,7 @@ import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import unquote
 
 import numpy as np
 
@@ -118,8 +120,8 @@ def _gltf_materials(data: bytes, ext: str, path: Path, digest) -> tuple[bytes | 
     buffers = doc.get("buffers", [])
     for b in buffers if isinstance(buffers, list) else []:
         uri = b.get("uri") if isinstance(b, dict) else None
-        if isinstance(uri, str) and not uri.startswith("data:") and (path.parent / uri).is_file():
-            digest.update((path.parent / uri).read_bytes())
+        if isinstance(uri, str) and not uri.startswith("data:") and (path.parent / unquote(uri)).is_file():
+            digest.update((path.parent / unquote(uri)).read_bytes())
     materials = gltf_materials(doc)
     if not materials.materials:
         return None, materials, _no_slot
