@@ -53,12 +53,15 @@ def _file_sha256(path: Path) -> str:
 
 def _objects_digest(scene: Scene) -> str:
     """A hash of the objects as solved: every field, a mesh file by its content, not its path
-    (so a moved project folder still resumes, and an edited mesh file does not)."""
+    (so a moved project folder still resumes, and an edited mesh file does not). The values
+    of the materials a mesh file gives are in ``fingerprint``'s materials, which lists them."""
     described = []
     for obj in scene.objects:
         d = dataclasses.asdict(obj)
         if isinstance(obj, MeshFile):
             del d["contents"]  # the arrays read at load; the file is hashed instead, below
+            if not d["file_materials"]:  # as before file materials were read: the same fingerprint
+                del d["file_materials"]
             contents = cached_contents(obj)
             d["path"] = contents.sha256 if contents is not None else _file_sha256(obj.path)
         described.append({"type": type(obj).__name__, **d})

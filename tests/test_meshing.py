@@ -279,8 +279,8 @@ def test_a_mesh_file_is_parsed_once_per_load(monkeypatch):
     from hemirad.scene.meshfile import read_mesh_file
 
     parsed = []
-    load = trimesh.load
-    monkeypatch.setattr(trimesh, "load", lambda path, **kw: parsed.append(path) or load(path, **kw))
+    load = trimesh.load_scene
+    monkeypatch.setattr(trimesh, "load_scene", lambda path, **kw: parsed.append(path) or load(path, **kw))
     scene = load_scene(DATA / "small_room.yaml")
     build_mesh(scene)
     build_mesh(scene.with_element_sizes_scaled(0.5))

@@ -18,13 +18,15 @@ The schema, all lengths in scene units::
       - {type: quad, corners: [[...], [...], [...], [...]], material: lamp}
       - {type: mesh, file: chair.obj, material: white, crease_angle: 30,
          transform: {translate: [...], rotate: [rx, ry, rz], scale: 1.0}}
+      - {type: mesh, name: shelf, file: shelf.glb}  # no material: the file's (filematerials.py),
+                                                    # shelf.<name>, or materials.<name> if defined
     camera: {position: [...], look_at: [...], up: [0, 1, 0], fov: 40, width: 512,
              height: 512, exposure: auto, supersample: 3}
     solver: {max_shots: 500, unshot_fraction: 1.0e-3, resolution: 128, ambient: true}
 
 This module reads the top level, materials and objects; the checks of single values are in
 ``keys.py``, the YAML dialect in ``yamlfile.py``, mesh objects and their files in
-``meshfile.py``, and the camera, solver and refine blocks in ``options.py``.
+``meshfile.py``, the materials of mesh files in ``filematerials.py``, and the camera, solver and refine blocks in ``options.py``.
 """
 from __future__ import annotations
 
@@ -35,19 +37,17 @@ import numpy as np
 
 from hemirad.core.errors import SceneError
 from hemirad.scene.keys import Checker, closest, did_you_mean, join
+from hemirad.scene.filematerials import scene_materials
 from hemirad.scene.meshfile import read_mesh_object
 from hemirad.scene.meshing import box_face_corners, quad_triangles
-from hemirad.scene.model import Box, FaceOverride, Material, MeshFile, Quad, Room, Scene, SceneObject
+from hemirad.scene.model import (MAX_EMISSION, MIN_EMISSION, Box, FaceOverride, Material, MeshFile, Quad, Room, Scene,
+                                 SceneObject)
 from hemirad.scene.options import MAX_TRIANGLES, read_camera, read_patch_size, read_refine, read_solver
 from hemirad.scene.yamlfile import parse_yaml
 
 #: How far (a fraction of its size) a quad's corners may lie off their mean plane. The
 #: mesher follows a slight twist (the Cornell box's red wall is 0.0014 off), not a fold.
 MAX_QUAD_TWIST = 0.05
-
-#: The emission a material may have, besides 0: radiosity (up to emission / (1 - reflectance),
-#: times areas for power) must stay a normal 32-bit float in the PLY and glTF outputs.
-MIN_EMISSION, MAX_EMISSION = 1e-20, 1e20
 
 #: The smallest object, as a fraction of the scene's size: 32-bit floats keep about 7 digits.
 MIN_RELATIVE_SIZE = 1e-6
@@ -69,9 +69,17 @@ _OBJECT_REQUIRED = {
     "room": ("min", "max", "material"),
     "box": ("min", "max", "material"),
     "quad": ("corners", "material"),
-    "mesh": ("file", "material"),
+    "mesh": ("file",),  # without a material, its faces take the file's materials
 }
 _FACE_KEYS = ("material", "element_size")
+
+# Why a mesh file gives a face no material, by its extension.
+_NO_MATERIAL_WHY = {
+    ".obj": "a face before any usemtl line",
+    ".glb": "a primitive without a material",
+    ".gltf": "a primitive without a material",
+    "": "only glTF and OBJ + MTL files give materials",
+}
 
 # What a missing required key should hold, for the error message.
 _REQUIRED_WHAT = {
@@ -173,7 +181,8 @@ class _Reader(Checker):
     def __init__(self, file: str, folder: Path, folder_shown: str):
         super().__init__(file, _REQUIRED_WHAT)
         self.folder, self.folder_shown = folder, folder_shown
-        self.materials: dict[str, Material] = {}
+        self.materials: dict[str, Material] = {}  # those under materials:
+        self.file_materials: dict[str, Material] = {}  # those mesh files give, by scene name
         self.default_size: float | None = None
         # (estimated triangles, key of the element_size that decides them)
         self.estimates: list[tuple[float, str]] = []
@@ -186,7 +195,8 @@ class _Reader(Checker):
     def material_name(self, v, key: str) -> str:
         names = list(self.materials)
         if not isinstance(v, str) or v not in self.materials:
-            self.fail(key, f"a material defined under materials ({', '.join(names)})", v, did_you_mean(v, names))
+            self.fail(key, f"a material defined under materials ({', '.join(names) or 'the scene defines none'})", v,
+                      did_you_mean(v, names))
         return v
 
     # --- sections ---
@@ -196,10 +206,10 @@ class _Reader(Checker):
             self.fail("", "a YAML mapping with the keys materials, objects and camera at the top level",
                       hint="The file is empty.")
         top = self.section(data, "", "a YAML mapping with the keys materials, objects and camera at the top level",
-                           _TOP_KEYS, ("materials", "objects", "camera"))
+                           _TOP_KEYS, ("objects", "camera"))
         if "element_size" in top:
             self.default_size = self.size(top["element_size"], "element_size")
-        self.read_materials(top["materials"])
+        self.read_materials(top.get("materials", {}))
         objects = self.read_objects(top["objects"])
         camera = read_camera(self, top["camera"])
         solver = read_solver(self, top.get("solver", {}))
@@ -207,13 +217,12 @@ class _Reader(Checker):
         self.check_light(objects)
         self.check_object_sizes()
         self.check_triangle_budget()
-        return Scene(list(self.materials.values()), objects, camera, solver, refine, source)
+        materials = list(self.materials.values()) + list(self.file_materials.values())
+        return Scene(materials, objects, camera, solver, refine, source)
 
     def read_materials(self, v):
-        expected = "a non-empty mapping of material names to {reflectance, emission}"
-        m = self.mapping(v, "materials", expected)
-        if not m:
-            self.fail("materials", expected, v)
+        # empty (or absent) when every object takes its materials from its mesh file
+        m = self.mapping(v, "materials", "a mapping of material names to {reflectance, emission}")
         for name, spec in m.items():
             key = join("materials", name)
             if not isinstance(name, str) or not name:
@@ -245,7 +254,7 @@ class _Reader(Checker):
             if name in names:
                 self.fail(f"{key}.name", "a name no other object has", name, f"{names[name]} is also called {name!r}.")
             names[name] = key
-            material = self.material_name(spec["material"], f"{key}.material")
+            material = self.material_name(spec["material"], f"{key}.material") if "material" in spec else None
             size, size_key = self.object_size(spec, key)
             read = getattr(self, f"read_{kind}")
             objects.append(read(spec, key, name, material, size, size_key))
@@ -357,7 +366,24 @@ class _Reader(Checker):
                                                    self.folder_shown)
         self.estimate(triangles, size, size_key)
         self.bounds.append((f"{key}.transform" if "transform" in spec else f"{key}.file", corners))
+        if material is None:
+            obj.file_materials = self.materials_from_file(obj, key, spec["file"])
         return obj
+
+    def materials_from_file(self, obj: MeshFile, key: str, shown: str) -> dict[str, str]:
+        """A mesh object without a material: its faces take the file's, each named in the scene as
+        ``filematerials.scene_materials`` says; a face the file gives none is refused."""
+        contents, why = obj.contents, _NO_MATERIAL_WHY.get(Path(obj.path).suffix.lower(), _NO_MATERIAL_WHY[""])
+        if contents.materials.problem:
+            self.fail(f"{key}.file", "a mesh file whose materials can be read, or a material on the object", shown,
+                      f"The object has no material, so it takes the file's, and {contents.materials.problem}.")
+        unassigned = int((contents.face_materials < 0).sum())
+        if unassigned:
+            self.fail(f"{key}.material", _REQUIRED_WHAT["material"],
+                      hint=f"The key is missing, and {unassigned} of the {len(contents.faces)} faces of {shown} "
+                           f"have no material in the file ({why}).")
+        return scene_materials(self, key, shown, obj.name, contents.materials, contents.used_materials(),
+                               self.materials, self.file_materials)
 
     # --- whole-scene checks ---
 
@@ -379,11 +405,13 @@ class _Reader(Checker):
                     f"which cannot tell its corners apart."))
 
     def check_light(self, objects: list[SceneObject]):
-        used = {o.material for o in objects}
+        used = {o.material for o in objects if o.material is not None}
         used |= {f.material for o in objects if isinstance(o, Room) for f in o.faces.values() if f.material}
-        if any(max(self.materials[n].emission) > 0 for n in used):
+        used |= {n for o in objects if isinstance(o, MeshFile) for n in o.file_materials.values()}
+        materials = {**self.materials, **self.file_materials}
+        if any(max(materials[n].emission) > 0 for n in used):
             return
-        emitting = [n for n, m in self.materials.items() if max(m.emission) > 0]
+        emitting = [n for n, m in materials.items() if max(m.emission) > 0]
         hint = "The scene has no light: nothing would be lit. "
         if emitting:
             hint += f"The material(s) {', '.join(emitting)} emit but no object uses them."

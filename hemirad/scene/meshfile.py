@@ -1,4 +1,5 @@
-"""Mesh files: read once per load (trimesh), and a scene's ``type: mesh`` objects checked.
+"""Mesh files: read once per load (trimesh) with the materials a glTF or OBJ + MTL file gives
+each face (``filematerials``), and a scene's ``type: mesh`` objects checked.
 
 The loader reads each mesh file to check it and estimate its element count, and keeps what
 it read on the ``MeshFile`` (``contents``); meshing and the checkpoint's fingerprint use
@@ -11,9 +12,12 @@ import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import unquote
 
 import numpy as np
 
+from hemirad.scene.filematerials import (NO_MATERIALS, FileMaterials, gltf_document, gltf_materials, obj_materials,
+                                         tag_index, tagged_gltf)
 from hemirad.scene.keys import MAX_COORDINATE, Checker, is_number
 from hemirad.scene.model import MeshFile
 
@@ -42,16 +46,26 @@ class MeshFileUnreadable(Exception):
 
 @dataclass(frozen=True, eq=False)
 class MeshContents:
-    """A mesh file as read, unprocessed: its triangles as in the file."""
+    """A mesh file as read, unprocessed: its triangles as in the file, and their materials."""
 
     path: Path
     vertices: np.ndarray  # (V, 3) float64, read-only
     faces: np.ndarray  # (F, 3) int64, read-only
-    sha256: str  # of the file's bytes
+    sha256: str  # of the file's bytes (a .gltf's: and of the buffer files it names)
+    face_materials: np.ndarray  # (F,) int64, read-only: index into materials.materials; -1: none given
+    materials: FileMaterials = NO_MATERIALS
+
+    def used_materials(self) -> list[int]:
+        """The indices into ``materials.materials`` that faces use, in ascending order."""
+        return [int(i) for i in np.unique(self.face_materials) if i >= 0]
 
 
 def read_mesh_file(path: Path) -> MeshContents:
-    """Read any file trimesh can load as one triangle mesh, unprocessed.
+    """Read any file trimesh can load as one triangle mesh, unprocessed, with the materials
+    of a glTF or OBJ + MTL file (``filematerials``) per face.
+
+    The triangles are trimesh's: its geometries (a glTF primitive, an OBJ's faces of one
+    material) moved to their place in the file's scene and concatenated in its order.
 
     Raises:
         MeshFileUnreadable: the file cannot be read or parsed.
@@ -59,21 +73,74 @@ def read_mesh_file(path: Path) -> MeshContents:
     import trimesh
 
     path = Path(path)
+    ext = path.suffix.lower().lstrip(".")
     try:
         data = path.read_bytes()
-        digest = hashlib.sha256(data).hexdigest()
-        text = _as_utf8(data, path.suffix.lower().lstrip("."))
+        digest = hashlib.sha256(data)
+        text = _as_utf8(data, ext)
+        materials, slot_of = NO_MATERIALS, _no_slot
+        if ext in ("glb", "gltf"):
+            text, materials, slot_of = _gltf_materials(data, ext, path, digest)
+        elif ext == "obj":
+            materials = obj_materials((text or data).decode("utf-8", "replace"), path)
+            slot_of = _mtl_slot
         if text is None:
-            tm = trimesh.load(path, force="mesh", process=False)
-        else:  # the same file, its stray bytes decoded here (trimesh would need charset_normalizer)
-            tm = trimesh.load(io.BytesIO(text), file_type=path.suffix.lower().lstrip("."), force="mesh",
-                              process=False, resolver=trimesh.resolvers.FilePathResolver(path))
+            scene = trimesh.load_scene(path, process=False)
+        else:  # the file as edited here (stray bytes decoded, glTF materials tagged)
+            scene = trimesh.load_scene(io.BytesIO(text), file_type=ext, process=False,
+                                       resolver=trimesh.resolvers.FilePathResolver(path))
+        meshes = [g for g in scene.dump() if isinstance(g, trimesh.Trimesh)]  # as trimesh.load_mesh
     except Exception as exc:  # trimesh raises many kinds; any of them means an unreadable file
         raise MeshFileUnreadable(exc) from exc
-    vertices = np.asarray(getattr(tm, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
-    faces = np.asarray(getattr(tm, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
-    vertices.flags.writeable = faces.flags.writeable = False  # shared by everything that meshes the scene
-    return MeshContents(path, vertices, faces, digest)
+    vertices = np.zeros((0, 3), dtype=np.float64)
+    faces = np.zeros((0, 3), dtype=np.int64)
+    slots = np.zeros(0, dtype=np.int64)
+    if meshes:
+        vertices = np.concatenate([np.asarray(m.vertices, dtype=np.float64).reshape(-1, 3) for m in meshes])
+        offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+        faces = np.concatenate([np.asarray(m.faces, dtype=np.int64).reshape(-1, 3) + o
+                                for m, o in zip(meshes, offsets)])
+        slots = np.concatenate([np.full(len(m.faces), slot_of(m, materials), dtype=np.int64) for m in meshes])
+    if materials.problem is None and len(slots) and (slots < 0).all() and materials.materials and ext == "obj":
+        # every face has a material by the OBJ's usemtl lines, yet trimesh attached none
+        materials = FileMaterials(problem="trimesh could not read its material library")
+    for a in (vertices, faces, slots):
+        a.flags.writeable = False  # shared by everything that meshes the scene
+    return MeshContents(path, vertices, faces, digest.hexdigest(), slots, materials)
+
+
+def _gltf_materials(data: bytes, ext: str, path: Path, digest) -> tuple[bytes | None, FileMaterials, object]:
+    """A glTF's materials, the file with them tagged for trimesh (None: read the file as it
+    is), and how to tell a geometry's material. Adds the buffer files a ``.gltf`` names to
+    ``digest``. A file that is no glTF is left to trimesh, which says why."""
+    try:
+        doc = gltf_document(data, ext)
+    except ValueError:
+        return None, NO_MATERIALS, _no_slot
+    buffers = doc.get("buffers", [])
+    for b in buffers if isinstance(buffers, list) else []:
+        uri = b.get("uri") if isinstance(b, dict) else None
+        if isinstance(uri, str) and not uri.startswith("data:") and (path.parent / unquote(uri)).is_file():
+            digest.update((path.parent / unquote(uri)).read_bytes())
+    materials = gltf_materials(doc)
+    if not materials.materials:
+        return None, materials, _no_slot
+    return tagged_gltf(data, ext, doc), materials, _tagged_slot
+
+
+def _no_slot(mesh, materials: FileMaterials) -> int:
+    return -1
+
+
+def _tagged_slot(mesh, materials: FileMaterials) -> int:
+    """The file's index of a glTF geometry's material (``tagged_gltf``), -1 for none."""
+    return tag_index(getattr(getattr(mesh.visual, "material", None), "name", None))
+
+
+def _mtl_slot(mesh, materials: FileMaterials) -> int:
+    """The index of an OBJ geometry's material (trimesh names it as ``usemtl`` does), -1 for none."""
+    name = getattr(getattr(mesh.visual, "material", None), "name", None)
+    return materials.index(name) if isinstance(name, str) else -1
 
 
 #: Mesh formats that are text, where a comment (or a name) may hold bytes of any encoding.

@@ -1,10 +1,11 @@
 """Turn a scene's objects into the initial triangle mesh the solver starts from.
 
-Every planar face (of a room or a box), every quad and every smooth patch of an imported
-mesh becomes its own *surface*: vertices are shared inside a surface and never between
-surfaces, so vertex averaging of radiosity never blends across a crease or an object
-boundary. Planar pieces are laid out as near-square grids; imported meshes are split at
-sharp edges and subdivided until no edge is longer than the element size.
+Every planar face (of a room or a box), every quad and every smooth patch of one material
+of an imported mesh becomes its own *surface*: vertices are shared inside a surface and
+never between surfaces, so vertex averaging of radiosity never blends across a crease, a
+change of material or an object boundary. Planar pieces are laid out as near-square grids;
+imported meshes are split at sharp edges and where their faces' materials differ, and
+subdivided until no edge is longer than the element size.
 
 Everything here is deterministic: the same scene gives bit-identical arrays.
 """
@@ -21,7 +22,7 @@ import torch
 
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.mesh import Mesh
-from hemirad.scene.meshfile import MeshFileUnreadable, clean_triangles, contents_of
+from hemirad.scene.meshfile import MeshContents, MeshFileUnreadable, clean_triangles, contents_of
 from hemirad.scene.model import Box, MeshFile, Quad, Room, Scene
 
 # ceil(length / size) with a little slack, so 0.9 / 0.3 = 3.0000000000000004 gives 3 cells.
@@ -161,12 +162,14 @@ def _quad_surfaces(quad: Quad, label: str, scene: Scene) -> list[_Surface]:
 # imported meshes
 
 
-def smooth_patches(vertices: np.ndarray, faces: np.ndarray, crease_angle: float) -> list[np.ndarray]:
+def smooth_patches(vertices: np.ndarray, faces: np.ndarray, crease_angle: float,
+                   groups: np.ndarray | None = None) -> list[np.ndarray]:
     """Group faces into patches joined across edges no sharper than ``crease_angle`` (degrees).
 
-    Two faces are joined when they share an edge and their normals differ by at most the
-    crease angle; patches are the connected components of that relation. Faces with
-    opposite winding across an edge differ by nearly 180 degrees and so stay apart.
+    Two faces are joined when they share an edge, their normals differ by at most the
+    crease angle and they are in the same group (``groups``: (F,) int64, e.g. their
+    materials; None: all in one); patches are the connected components of that relation.
+    Faces with opposite winding across an edge differ by nearly 180 degrees and so stay apart.
 
     Returns:
         A list of (F_k,) int64 face-index arrays, ordered by their smallest face index,
@@ -181,6 +184,8 @@ def smooth_patches(vertices: np.ndarray, faces: np.ndarray, crease_angle: float)
     pairs = np.asarray(tm.face_adjacency, dtype=np.int64).reshape(-1, 2)
     angles = np.asarray(tm.face_adjacency_angles, dtype=np.float64).reshape(-1)
     joined = pairs[angles <= math.radians(crease_angle) + 1e-9]
+    if groups is not None:
+        joined = joined[groups[joined[:, 0]] == groups[joined[:, 1]]]
     graph = coo_matrix((np.ones(len(joined)), (joined[:, 0], joined[:, 1])), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
     # scipy numbers components in order of their first face, so this order is stable
@@ -201,6 +206,21 @@ def _subdivide(vertices: np.ndarray, faces: np.ndarray, element_size: float) -> 
     return np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)
 
 
+def _face_materials(obj: MeshFile, contents: MeshContents, label: str, scene: Scene) -> np.ndarray:
+    """(F,) int64 the scene material index of each face of the file: the object's material, or
+    the scene material ``obj.file_materials`` names for the file's material of the face."""
+    if obj.material is not None:
+        return np.full(len(contents.faces), scene.material_index(obj.material), dtype=np.int64)
+    names = [m.name for m in contents.materials.materials]
+    table = np.array([scene.material_index(obj.file_materials[n]) if n in obj.file_materials else -1
+                      for n in names] + [-1], dtype=np.int64)  # the last for a face with none
+    per_face = table[contents.face_materials]
+    if (per_face < 0).any():
+        raise HemiradInputError(f"{label}: {int((per_face < 0).sum())} faces of the mesh file {obj.path} have no "
+                                f"material (the object gives none, and neither does the file or its file_materials)")
+    return per_face
+
+
 def _mesh_file_surfaces(obj: MeshFile, label: str, scene: Scene) -> list[_Surface]:
     try:
         contents = contents_of(obj)
@@ -211,6 +231,7 @@ def _mesh_file_surfaces(obj: MeshFile, label: str, scene: Scene) -> list[_Surfac
         raise HemiradInputError(f"{label}: the mesh file {obj.path} holds no triangles")
     if raw_faces.min() < 0 or raw_faces.max() >= len(raw_vertices):
         raise HemiradInputError(f"{label}: the mesh file {obj.path} indexes vertices it does not have")
+    face_material = _face_materials(obj, contents, label, scene)
 
     # Merge by exact position so adjacency sees through per-corner normals and UVs
     # (and STL's unshared corners); np.unique's sorted order keeps this deterministic.
@@ -227,18 +248,19 @@ def _mesh_file_surfaces(obj: MeshFile, label: str, scene: Scene) -> list[_Surfac
         reasons = ", ".join(f"{n} {why}" for why, n in dropped.items() if n)
         warnings.warn(f"{label}: dropped {int((~keep).sum())} of {len(faces)} triangles of "
                       f"{Path(obj.path).name} ({reasons})", HemiradWarning, stacklevel=3)
-    faces = faces[keep]
+    faces, face_material = faces[keep], face_material[keep]
     if len(faces) == 0:
         raise HemiradInputError(f"{label}: the mesh file {obj.path} has no triangle with a non-zero area")
 
-    material = scene.material_index(obj.material)
-    patches = smooth_patches(vertices, faces, obj.crease_angle)
+    # a patch has one material: vertices are not shared (nor radiosity averaged) across a
+    # material's edge, as between a room's faces
+    patches = smooth_patches(vertices, faces, obj.crease_angle, face_material)
     out = []
     for k, patch in enumerate(patches):
         used, local = np.unique(faces[patch], return_inverse=True)
         v, f = _subdivide(vertices[used], local.reshape(-1, 3), obj.element_size)
         name = label if len(patches) == 1 else f"{label}.patch{k}"
-        out.append(_Surface(name, torch.from_numpy(v), torch.from_numpy(f), material))
+        out.append(_Surface(name, torch.from_numpy(v), torch.from_numpy(f), int(face_material[patch[0]])))
     return out
 
 
@@ -265,8 +287,8 @@ def build_mesh(scene: Scene) -> Mesh:
 
     Surface names are ``<object>.<face>`` for rooms (floor, ceiling, x_min, x_max, z_min,
     z_max) and boxes (bottom, top, x_min, ...), ``<object>`` for quads and ``<object>`` or
-    ``<object>.patch<k>`` for the smooth patches of imported meshes, where ``<object>`` is
-    the object's name (the loader names unnamed objects ``objects[i]``).
+    ``<object>.patch<k>`` for the smooth patches (each of one material) of imported meshes,
+    where ``<object>`` is the object's name (the loader names unnamed objects ``objects[i]``).
     """
     surfaces: list[_Surface] = []
     builders = {Room: _room_surfaces, Box: _box_surfaces, Quad: _quad_surfaces, MeshFile: _mesh_file_surfaces}

@@ -24,6 +24,11 @@ ANSWER = "answer"
 CRITERION_NAMES = SHOT_CRITERION_NAMES + (ANSWER,)
 
 
+#: The emission a material may have, besides 0: radiosity (up to emission / (1 - reflectance),
+#: times areas for power) must stay a normal 32-bit float in the PLY and glTF outputs.
+MIN_EMISSION, MAX_EMISSION = 1e-20, 1e20
+
+
 @dataclass
 class Material:
     name: str
@@ -83,16 +88,23 @@ class Quad:
 
 @dataclass
 class MeshFile:
-    """A triangle mesh read by trimesh (OBJ, PLY, GLB, ...), placed by a 4x4 transform."""
+    """A triangle mesh read by trimesh (OBJ, PLY, GLB, ...), placed by a 4x4 transform.
+
+    Its faces have ``material``, or, when that is None, the materials the file gives them
+    (glTF, OBJ + MTL: ``hemirad.scene.filematerials``), each the scene material that
+    ``file_materials`` maps the file's material name to.
+    """
 
     path: Path
-    material: str
+    material: str | None
     element_size: float
     transform: tuple[tuple[float, ...], ...] = (
         (1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
     crease_angle: float = 30.0  # degrees: vertices are not shared across sharper edges
     name: str = "mesh"
     patch_size: float | str | None = None  # "auto", "none" or a length; None: the solver's
+    # the file's material name -> the scene's material name, for the materials its faces use
+    file_materials: dict[str, str] = field(default_factory=dict)
     # the file as the loader read it (hemirad.scene.meshfile.MeshContents), so that meshing
     # does not parse it again; None: read when meshed
     contents: object = field(default=None, repr=False, compare=False)
