@@ -355,7 +355,8 @@ def check_before_solving(scene: Scene, mesh: Mesh, solver: ProgressiveSolver) ->
         raise _key_error(scene, "refine.view_surface", "the name of a surface of the scene",
                          scene.refine.view_surface, str(exc)[:1].upper() + str(exc)[1:]) from exc
     files: dict[str, str] = {}
-    for i, name in enumerate(scene.falsecolour):
+    first = {name: i for i, name in reversed(list(enumerate(scene.falsecolour)))}  # a repeated name once
+    for name, i in sorted(first.items(), key=lambda item: item[1]):
         key = f"falsecolour[{i}]"
         try:
             pick_surface(mesh, name)

@@ -111,7 +111,7 @@ def plane_figure(values, extent, unit: str, title: str, levels=None, xlabel: str
 
     # Size: the map's longer side _MAP_INCHES, its aspect the rectangle's (within 1:4),
     # plus room for the colour bar, the title and the axes' labels.
-    aspect = abs(x1 - x0) / abs(y1 - y0) if axes else data.shape[1] / data.shape[0]
+    aspect = abs(x1 - x0) / abs(y1 - y0)
     aspect = min(max(aspect, 0.25), 4.0)
     map_w, map_h = (_MAP_INCHES, _MAP_INCHES / aspect) if aspect >= 1 else (_MAP_INCHES * aspect, _MAP_INCHES)
     fig = MplFigure(figsize=(map_w + 1.9, map_h + 1.1), dpi=_DPI, layout="constrained")
@@ -119,7 +119,7 @@ def plane_figure(values, extent, unit: str, title: str, levels=None, xlabel: str
     ax = fig.add_subplot()
     cmap = colormaps[COLOUR_MAP].with_extremes(bad=NO_DATA_GREY)
     image = ax.imshow(np.ma.masked_invalid(shown), cmap=cmap, norm=norm, origin="lower",
-                      extent=(x0, x1, y0, y1), interpolation="nearest", aspect="equal" if axes else "auto")
+                      extent=(x0, x1, y0, y1), interpolation="nearest", aspect="equal")
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_title(title)
