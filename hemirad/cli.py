@@ -12,7 +12,7 @@ from pathlib import Path
 from hemirad.core.device import DEVICES, DEVICE_NAMES, is_device_name
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.patterns import PATTERN_CHOICES, describe_patterns
-from hemirad.scene.loader import MAX_TRIANGLES, bundled_scenes, load_scene
+from hemirad.scene.loader import MAX_SURFACE_NAME, MAX_TRIANGLES, bundled_scenes, load_scene
 from hemirad.scene.model import CRITERION_NAMES, RefineOptions
 
 
@@ -66,6 +66,12 @@ def _patch_size(text: str) -> float | str:
     return _positive_float(text)
 
 
+def _surface_name(text: str) -> str:
+    if not 0 < len(text) <= MAX_SURFACE_NAME:
+        raise argparse.ArgumentTypeError(f"expected a surface name of 1 to {MAX_SURFACE_NAME} characters")
+    return text
+
+
 def _device(text: str) -> str:
     if not is_device_name(text):
         raise argparse.ArgumentTypeError(f"expected one of {', '.join(DEVICE_NAMES)}, got {text!r}")
@@ -96,8 +102,9 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="hemirad",
-        description="Solve a scene by progressive-refinement radiosity and write image.png, "
-                    "mesh.png, mesh.ply and mesh.glb (per-vertex colour and radiosity) and stats.json.")
+        description="Solve a scene by progressive-refinement radiosity and write image.png, image.exr "
+                    "(linear radiance), luminance.png (false colour), mesh.png, mesh.ply and mesh.glb "
+                    "(per-vertex colour and radiosity) and stats.json.")
     parser.add_argument("scene", help="a scene file (YAML) or the name of a bundled scene "
                                       f"({', '.join(bundled_scenes())})")
     parser.add_argument("-o", "--output", type=Path,
@@ -132,6 +139,11 @@ def build_parser() -> argparse.ArgumentParser:
                              "(refine.tolerance, default 0.01)")
     refine.add_argument("--rounds", type=_depth, metavar="N",
                         help="criterion answer: at most N refinements between converged solves (refine.rounds)")
+    pictures = parser.add_argument_group("pictures")
+    pictures.add_argument("--falsecolour", action="append", type=_surface_name, metavar="SURFACE",
+                          help="also write falsecolour_SURFACE.png, the light falling on that surface (e.g. "
+                               "room.floor) as a false-colour map in lux; repeat for more surfaces "
+                               "(replaces the scene's falsecolour list)")
     runs = parser.add_argument_group("long runs")
     runs.add_argument("--checkpoint-every", type=_non_negative_int, default=0, metavar="N",
                       help="write OUT/checkpoint.pt after every N shots, and when the run ends (default 0: never)")
@@ -181,7 +193,7 @@ class _Progress:
 
 def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     """Solve and write as ``args`` say; ``argv`` (the command line) is echoed in the resume hint."""
-    from hemirad.pipeline import output_lock
+    from hemirad.pipeline import output_lock, output_names
 
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
     scene = load_scene(args.scene)
@@ -198,9 +210,12 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
         given = {k: v for k, (_, v) in options.items() if v is not None}
         setattr(scene, block, replace(getattr(scene, block), **given))
         scene.command_line.update({f"{block}.{k}": options[k][0] for k in given})
+    if args.falsecolour:
+        scene.falsecolour = list(args.falsecolour)
+        scene.command_line.update({f"falsecolour[{i}]": "--falsecolour" for i in range(len(args.falsecolour))})
     name = scene.source.stem if scene.source else str(args.scene)
     # Held until the outputs are written: checked (and a second run refused) before solving, not after.
-    with output_lock(args.output or Path(f"{name}_out")) as output:
+    with output_lock(args.output or Path(f"{name}_out"), output_names(scene)) as output:
         return _solve_and_write(args, argv, scene, output, say)
 
 

@@ -1,7 +1,7 @@
 """The whole job, scene to outputs: the library entry points behind the CLI.
 
     result = hemirad.solve(hemirad.load_scene("cornell_box"))
-    result.write("out/")    # image.png, mesh.png, mesh.ply, mesh.glb, stats.json
+    result.write("out/")    # image.png, image.exr, luminance.png, mesh.png, mesh.ply, mesh.glb, stats.json
 
     # a long run that can be killed, then continued by the same call with resume=True
     # (to the same result, bit for bit)
@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import difflib
 import fcntl
 import math
 import os
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,11 +29,12 @@ from hemirad.adaptive.answer import RoundReport, estimated_relative_error, refin
 from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver
 from hemirad.core.atomic import remove_stale_temporaries
+from hemirad.core.colour import LUMENS_PER_WATT
 from hemirad.core.device import select_device
 from hemirad.core.errors import HemiradInputError, SceneError, bounded_repr
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import angle_quality
-from hemirad.output import display, export, gltf
+from hemirad.output import display, export, falsecolour, gltf
 from hemirad.output.meshview import pick_surface, surface_view
 from hemirad.output.render import render_view
 from hemirad.scene.meshing import build_mesh
@@ -40,9 +43,26 @@ from hemirad.transport.gl import GLContext, check_image_size
 from hemirad.transport.solver import ProgressiveSolver, ShotReport, ambient_term
 
 
-#: The files ``Result.write`` makes in an output folder, by kind.
-OUTPUT_FILES = {"image": "image.png", "mesh view": "mesh.png", "mesh": "mesh.ply", "glTF": "mesh.glb",
-                "stats": "stats.json"}
+#: The files ``Result.write`` makes in an output folder, by kind; besides these, one
+#: ``falsecolour_file(name)`` for each surface the scene's ``falsecolour`` names.
+OUTPUT_FILES = {"image": "image.png", "HDR image": "image.exr", "luminance": "luminance.png",
+                "mesh view": "mesh.png", "mesh": "mesh.ply", "glTF": "mesh.glb", "stats": "stats.json"}
+
+#: Photometric values from the radiometric ones a scene in W/m^2 gives, with their units:
+#: 683 lm/W times the luminance (Rec. 709) of the colour.
+LUMINANCE_UNIT, ILLUMINANCE_UNIT = "cd/m^2", "lx"
+
+
+def falsecolour_file(surface: str) -> str:
+    """The file the false-colour picture of ``surface`` (a name as the scene gives it) is
+    written to: ``falsecolour_room.floor.png``; characters a file name should not hold
+    (anything but letters, digits, ``.``, ``_`` and ``-``) become ``_``."""
+    return "falsecolour_" + re.sub(r"[^A-Za-z0-9._-]", "_", surface) + ".png"
+
+
+def output_names(scene: Scene) -> list[str]:
+    """Every file name a run of ``scene`` writes into its output folder (not the checkpoint)."""
+    return [*OUTPUT_FILES.values(), *dict.fromkeys(falsecolour_file(name) for name in scene.falsecolour)]
 
 
 @dataclass
@@ -93,11 +113,53 @@ class Result:
         emitting = (self.emission > 0).any(dim=1)
         return display.auto_exposure(self.display_radiosity, self.mesh.areas, emitting)
 
-    def image(self) -> np.ndarray:
-        """(height, width, 3) uint8 sRGB camera view."""
-        linear = render_view(self.mesh, self.vertex_radiosity(), self.scene.camera,
-                             triangles=display.conforming_triangles(self.mesh))
-        return display.to_srgb8(linear, self.exposure())
+    def linear_image(self) -> np.ndarray:
+        """(height, width, 3) float32 camera view of the display radiosity: linear, in the
+        scene's units (W/m^2), before exposure and sRGB."""
+        return render_view(self.mesh, self.vertex_radiosity(), self.scene.camera,
+                           triangles=display.conforming_triangles(self.mesh))
+
+    def image(self, linear: np.ndarray | None = None) -> np.ndarray:
+        """(height, width, 3) uint8 sRGB camera view. ``linear``: ``linear_image()``, to
+        reuse one already rendered."""
+        return display.to_srgb8(self.linear_image() if linear is None else linear, self.exposure())
+
+    def radiance_image(self, linear: np.ndarray | None = None) -> np.ndarray:
+        """(height, width, 3) float32 radiance the camera sees, B / pi (the surfaces are
+        Lambertian), in the scene's units per steradian (W/(m^2 sr)): what image.exr holds."""
+        linear = self.linear_image() if linear is None else linear
+        return (np.asarray(linear, dtype=np.float64) / math.pi).astype(np.float32)
+
+    def coverage_image(self) -> np.ndarray:
+        """(height, width) float32: the share of each camera pixel that surfaces cover (the
+        view with every vertex 1); 0 where the camera sees nothing."""
+        ones = torch.ones(len(self.mesh.vertices), 3, dtype=torch.float32)
+        view = render_view(self.mesh, ones, self.scene.camera, triangles=display.conforming_triangles(self.mesh))
+        return view[:, :, 0]
+
+    def luminance_image(self, factor: float = LUMENS_PER_WATT, unit: str = LUMINANCE_UNIT,
+                        linear: np.ndarray | None = None) -> np.ndarray:
+        """(h, w, 3) uint8: the camera view's luminance in false colour with a colour bar (a
+        log scale; pixels that see no surface grey). ``factor`` and ``unit``: 683 lm/W and
+        cd/m^2 for a scene in W/m^2; 1 and the scene's unit for one already photometric.
+        ``linear``: ``linear_image()``, to reuse one already rendered."""
+        linear = self.linear_image() if linear is None else linear
+        return falsecolour.luminance_picture(linear, self.coverage_image(), unit, "Luminance", factor)
+
+    def irradiance(self) -> torch.Tensor:
+        """(T, 3) the irradiance falling on each element, (B - E) / rho per channel with B
+        the display radiosity (so the ambient term is in it); NaN where rho is 0."""
+        return falsecolour.element_irradiance(self.display_radiosity, self.emission, self.reflectance)
+
+    def surface_falsecolour(self, surface: str, factor: float = LUMENS_PER_WATT, unit: str = ILLUMINANCE_UNIT,
+                            size: int = 512, levels=None) -> np.ndarray:
+        """(h, w, 3) uint8: the light falling on one surface (a name, as for ``mesh_image``),
+        seen straight on, as a false-colour map of ``factor`` times the luminance of its
+        irradiance, with a colour bar in ``unit`` and iso-lines (``levels``; None: nice
+        numbers over its range). Defaults: illuminance in lux for a scene in W/m^2."""
+        index = pick_surface(self.mesh, surface)
+        title = f"Light falling on {self.mesh.surface_names[index]}"
+        return falsecolour.surface_picture(self.mesh, self.irradiance(), index, unit, title, factor, size, levels)
 
     def mesh_image(self, surface: str | None = None, size: int = 512) -> np.ndarray:
         """(H, W, 3) uint8: one surface seen straight on, its elements shaded and outlined
@@ -108,20 +170,29 @@ class Result:
         return display.to_srgb8(linear, self.exposure())
 
     def write(self, folder) -> dict[str, Path]:
-        """Write image.png, mesh.png, mesh.ply, mesh.glb and stats.json into ``folder`` (made if
-        missing), each atomically, under the folder's lock (``output_lock``); returns their
-        paths by kind. Raises HemiradInputError if it cannot write, another run holds the
-        folder, or a result is not finite (then nothing is written)."""
-        with output_lock(folder) as folder:
+        """Write image.png, image.exr, luminance.png, mesh.png, mesh.ply, mesh.glb, stats.json
+        and a falsecolour_<surface>.png for each surface the scene's ``falsecolour`` names into
+        ``folder`` (made if missing), each atomically, under the folder's lock
+        (``output_lock``); returns their paths by kind. Raises HemiradInputError if it cannot
+        write, another run holds the folder, or a result is not finite (then nothing is
+        written)."""
+        with output_lock(folder, output_names(self.scene)) as folder:
             return self._write(folder)
 
     def _write(self, folder: Path) -> dict[str, Path]:
         paths = {kind: folder / name for kind, name in OUTPUT_FILES.items()}
+        surfaces = dict.fromkeys(self.scene.falsecolour)
+        paths.update({f"falsecolour {name}": folder / falsecolour_file(name) for name in surfaces})
         vertex = self.vertex_radiosity()
         check_finite(self, vertex)  # before anything is written
         start = time.perf_counter()
-        export.write_png(paths["image"], self.image())
+        linear = self.linear_image()
+        export.write_png(paths["image"], self.image(linear))
+        export.write_exr(paths["HDR image"], self.radiance_image(linear))
+        export.write_png(paths["luminance"], self.luminance_image(linear=linear))
         export.write_png(paths["mesh view"], self.mesh_image())
+        for name in surfaces:
+            export.write_png(paths[f"falsecolour {name}"], self.surface_falsecolour(name))
         rendered = time.perf_counter()
         export.write_ply(paths["mesh"], self.mesh, vertex, display.to_srgb8(vertex.numpy(), self.exposure()))
         self.write_glb(paths["glTF"], vertex)
@@ -179,9 +250,10 @@ def check_gl_limits(scene: Scene, gpu: bool = False) -> None:
         raise refusal(GLContext.max_image_size(gpu))
 
 
-def prepare_output_folder(folder) -> Path:
+def prepare_output_folder(folder, names=None) -> Path:
     """Create ``folder`` (and its parents) if needed; HemiradInputError when it cannot be
-    written, or when one of the files a run writes there is a folder (or not a file)."""
+    written, or when one of the files a run writes there (``names``, default
+    ``OUTPUT_FILES``'s; the checkpoint's too) is a folder (or not a file)."""
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -189,7 +261,7 @@ def prepare_output_folder(folder) -> Path:
         raise HemiradInputError(f"cannot create the output folder {folder}: {exc.strerror or exc}.") from exc
     if not os.access(folder, os.W_OK):
         raise HemiradInputError(f"the output folder {folder} is not writable.")
-    for name in (*OUTPUT_FILES.values(), checkpoints.FILENAME):
+    for name in (*(OUTPUT_FILES.values() if names is None else names), checkpoints.FILENAME):
         path = folder / name
         if path.exists() and not path.is_file():
             raise HemiradInputError(f"cannot write {path}: it exists and is not a regular file "
@@ -203,11 +275,13 @@ _held: dict[Path, object] = {}  # output folders this process holds the lock of
 
 
 @contextlib.contextmanager
-def output_lock(folder):
-    """Hold ``folder`` (prepared, see ``prepare_output_folder``) for one run: a second run
-    writing there is refused (HemiradInputError) until this one ends, and the temporary
-    files a killed run left there are removed. Re-entrant within a process; yields the folder."""
-    folder = prepare_output_folder(folder)
+def output_lock(folder, names=None):
+    """Hold ``folder`` (prepared for the files ``names``, see ``prepare_output_folder``) for
+    one run: a second run writing there is refused (HemiradInputError) until this one ends,
+    and the temporary files a killed run left there are removed. Re-entrant within a
+    process; yields the folder."""
+    names = list(OUTPUT_FILES.values() if names is None else names)
+    folder = prepare_output_folder(folder, names)
     key = folder.resolve()
     if key in _held:
         yield folder
@@ -224,7 +298,7 @@ def output_lock(folder):
                                     f"it to finish or choose another folder (-o).") from exc
         _held[key] = handle
         try:
-            remove_stale_temporaries(folder, (*OUTPUT_FILES.values(), checkpoints.FILENAME))
+            remove_stale_temporaries(folder, (*names, checkpoints.FILENAME))
             yield folder
         finally:
             del _held[key]
@@ -260,14 +334,42 @@ def _key_error(scene: Scene, key: str, expected: str, got: object = ..., hint: s
     return HemiradInputError(f"{option} (given on the command line, for {key}): expected {expected}{shown}. {hint}")
 
 
+def _surface_hint(mesh: Mesh, name: str, error: HemiradInputError) -> str:
+    """What to say of a surface name ``pick_surface`` refused: the names close to it (by
+    spelling, whole or after the object's name), and what surfaces there are."""
+    names = list(mesh.surface_names)
+    if any(n.endswith("." + name) for n in names):  # ambiguous: pick_surface lists the matches
+        return str(error)[:1].upper() + str(error)[1:]
+    close = difflib.get_close_matches(name, names, n=3, cutoff=0.6)
+    close += [n for n in names if n not in close and difflib.get_close_matches(name, [n.rsplit(".", 1)[-1]],
+                                                                                 cutoff=0.6)][:3 - len(close)]
+    shown = ", ".join(names[:12]) + (f" and {len(names) - 12} more" if len(names) > 12 else "")
+    near = f" The closest names: {', '.join(close)}." if close else ""
+    return f"No surface named {bounded_repr(name)}.{near} The scene's surfaces: {shown}."
+
+
 def check_before_solving(scene: Scene, mesh: Mesh, solver: ProgressiveSolver) -> None:
     """What can only be checked once the scene is meshed, checked before any shot: the
-    surface ``refine.view_surface`` names, and an emitted power that is finite and positive."""
+    surfaces ``refine.view_surface`` and ``falsecolour`` name, and an emitted power that is
+    finite and positive."""
     try:
         pick_surface(mesh, scene.refine.view_surface)
     except HemiradInputError as exc:
         raise _key_error(scene, "refine.view_surface", "the name of a surface of the scene",
                          scene.refine.view_surface, str(exc)[:1].upper() + str(exc)[1:]) from exc
+    files: dict[str, str] = {}
+    first = {name: i for i, name in reversed(list(enumerate(scene.falsecolour)))}  # a repeated name once
+    for name, i in sorted(first.items(), key=lambda item: item[1]):
+        key = f"falsecolour[{i}]"
+        try:
+            pick_surface(mesh, name)
+        except HemiradInputError as exc:
+            raise _key_error(scene, key, "the name of a surface of the scene", name,
+                             _surface_hint(mesh, name, exc)) from exc
+        other = files.setdefault(falsecolour_file(name), name)
+        if other != name:
+            raise _key_error(scene, key, "surface names that give different file names", name,
+                             f"Both {other!r} and {name!r} would be written to {falsecolour_file(name)}.")
     power = solver.emitted_power.cpu()
     if not (bool(torch.isfinite(power).all()) and bool((power > 0).any())):
         raise _key_error(scene, "materials", "emissions and areas whose emitted power is finite and positive",

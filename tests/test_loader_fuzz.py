@@ -37,7 +37,7 @@ KEYS = ["element_size", "materials", "objects", "camera", "solver", "refine", "r
         "type", "name", "material", "min", "max", "faces", "floor", "corners", "file", "transform",
         "translate", "rotate", "scale", "matrix", "crease_angle", "position", "look_at", "up", "fov",
         "width", "height", "exposure", "supersample", "max_shots", "unshot_fraction", "resolution",
-        "ambient", "pattern", "criterion", "threshold", "max_depth", "max_elements", "view_surface",
+        "ambient", "pattern", "criterion", "threshold", "max_depth", "max_elements", "view_surface", "falsecolour",
         "white", "lamp"]
 WORDS = ["room", "box", "quad", "mesh", "white", "lamp", "auto", "pattern2", "gradient", "tetra.obj",
          "missing.obj", "room.floor", ""]

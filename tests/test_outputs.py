@@ -32,7 +32,8 @@ def written(tmp_path_factory):
 def test_write_makes_every_output(written):
     result, paths = written
     assert {k: p.name for k, p in paths.items()} == {
-        "image": "image.png", "mesh view": "mesh.png", "mesh": "mesh.ply", "glTF": "mesh.glb", "stats": "stats.json"}
+        "image": "image.png", "HDR image": "image.exr", "luminance": "luminance.png", "mesh view": "mesh.png",
+        "mesh": "mesh.ply", "glTF": "mesh.glb", "stats": "stats.json"}
     assert all(p.stat().st_size > 0 for p in paths.values())
     stats = json.loads(paths["stats"].read_text())
     assert stats["elements"] == result.mesh.num_elements and stats["resumed_from_shot"] is None

@@ -35,7 +35,7 @@ from hemirad.scene.loader import load_scene
 
 BAD = Path(__file__).parent / "bad_inputs"
 EXPECTED = BAD / "expected.yaml"
-OUTPUTS = ("image.png", "mesh.png", "mesh.ply", "mesh.glb", "stats.json")
+OUTPUTS = ("image.png", "image.exr", "luminance.png", "mesh.png", "mesh.ply", "mesh.glb", "stats.json")
 
 
 def refused(capsys, argv: list[str]) -> str:

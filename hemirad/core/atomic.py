@@ -42,6 +42,32 @@ def write_atomically(path, write: Callable[[BinaryIO], None]) -> None:
                 tmp.unlink()
 
 
+def write_atomically_by_name(path, write: Callable[[Path], None]) -> None:
+    """``write_atomically`` for a writer that opens the file itself, by name (a library
+    that takes a path, not a file object): ``write(temporary_path)``, then the same
+    durable move over ``path``.
+
+    Raises:
+        OSError: the folder or the file cannot be written (the temporary file is removed).
+    """
+    path = Path(path)
+    tmp = temporary_path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write(tmp)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)  # on disk before the rename makes it the file
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+        tmp = None
+    finally:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+
+
 def remove_stale_temporaries(folder, names) -> list[Path]:
     """Remove the temporary files a killed run left for the files ``names`` in ``folder``;
     only safe while no other run writes there. Returns what was removed."""

@@ -1,4 +1,5 @@
-"""Writing results: PNG images, PLY meshes with vertex colours and radiosity, JSON stats.
+"""Writing results: PNG images, OpenEXR (HDR) images, PLY meshes with vertex colours and
+radiosity, JSON stats.
 
 Output-path problems (a missing permission, a directory where a file should go) are the
 user's to fix, so they surface as ``HemiradInputError`` with the path named.
@@ -11,11 +12,12 @@ import math
 from pathlib import Path
 
 import numpy as np
+import OpenEXR
 import torch
 import trimesh
 from PIL import Image
 
-from hemirad.core.atomic import write_atomically
+from hemirad.core.atomic import write_atomically, write_atomically_by_name
 from hemirad.core.errors import HemiradInputError
 from hemirad.geometry.mesh import Mesh
 
@@ -44,6 +46,34 @@ def write_png(path, rgb8: np.ndarray) -> None:
     buffer = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(rgb8)).save(buffer, format="PNG")
     _write_bytes(path, buffer.getvalue())
+
+
+def write_exr(path, linear_rgb) -> None:
+    """Write an (H, W, 3) linear RGB image as OpenEXR: 32-bit float channels R, G, B, ZIP
+    compressed, first row at the top, no transfer curve; any finite values (no clipping).
+
+    OpenEXR's ``File.write`` takes a file name (a stream only in its newest releases), so
+    the temporary file is handed over by name.
+    """
+    rgb = np.ascontiguousarray(_as_numpy(linear_rgb), dtype=np.float32)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.shape[0] < 1 or rgb.shape[1] < 1:
+        raise ValueError(f"expected an (H, W, 3) image, got {rgb.shape}")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    image = OpenEXR.File(header, {"RGB": rgb})
+    path = Path(path)
+    try:
+        write_atomically_by_name(path, lambda tmp: image.write(str(tmp)))
+    except (OSError, RuntimeError) as exc:
+        raise HemiradInputError(f"could not write {path}: {getattr(exc, 'strerror', None) or exc}.") from exc
+
+
+def read_exr(path) -> tuple[np.ndarray, dict]:
+    """(H, W, 3) float32 R, G, B of an OpenEXR file written by ``write_exr``, and the file's
+    pixel type per channel (``{"R": OpenEXR.FLOAT, ...}``, from its header)."""
+    image = OpenEXR.File(str(path), separate_channels=True)
+    channels = image.channels()
+    rgb = np.stack([np.asarray(channels[name].pixels) for name in "RGB"], axis=-1)
+    return rgb, {name: channels[name].type() for name in "RGB"}
 
 
 def ply_mesh(mesh: Mesh, vertex_radiosity, vertex_rgb8) -> trimesh.Trimesh:

@@ -155,15 +155,33 @@ def _chosen_part(mesh: Mesh, surfaces: list[int]) -> Mesh:
                 list(mesh.surface_names), mesh.level[chosen], mesh.edge_parents)
 
 
-def _eye_frame(mesh: Mesh, part: Mesh, surfaces: list[int], size: int):
-    """Where ``part`` is seen straight on along its area-weighted mean normal.
+class SurfaceFrame(NamedTuple):
+    """Where surfaces are seen straight on (``surface_view``'s frame).
 
-    Returns:
-        eye_space: (V, 3) float64 every vertex of ``mesh`` in the view's frame (right, up,
-            towards the viewer), relative to the part's centre.
-        lo, hi: (3,) float64 the corners of the part's bounding box in that frame.
-        width, height: the image size in pixels, the longer side ``size``.
+    Attributes:
+        basis: (3, 3) float64 rows right, up, normal (``view_basis`` of the area-weighted
+            mean normal).
+        center: (3,) float64 the world point at the frame's origin (the mean of the
+            surfaces' vertices).
+        lo, hi: (3,) float64 the corners of the surfaces' bounding box in the frame; the
+            image spans [lo[0], hi[0]] left to right and [lo[1], hi[1]] bottom to top.
     """
+    basis: np.ndarray
+    center: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+def surface_frame(mesh: Mesh, surface: int | list[int]) -> SurfaceFrame:
+    """The frame ``surface_view`` draws ``surface`` (an index or a list of them) in: a
+    pixel's centre at column i, row r of a W x H view lies at
+    ``center + basis.T @ (lo[0] + (i + 0.5) (hi[0] - lo[0]) / W, hi[1] - (r + 0.5) (hi[1] - lo[1]) / H, *)``."""
+    surfaces = [int(surface)] if isinstance(surface, (int, np.integer)) else [int(s) for s in surface]
+    return _frame(mesh, _chosen_part(mesh, surfaces), surfaces)[0]
+
+
+def _frame(mesh: Mesh, part: Mesh, surfaces: list[int]) -> tuple[SurfaceFrame, np.ndarray]:
+    """``part``'s ``SurfaceFrame``, and (V, 3) float64 every vertex of ``mesh`` in it."""
     normal_sum = torch.linalg.cross(part.corners[:, 1] - part.corners[:, 0],
                                     part.corners[:, 2] - part.corners[:, 0]).sum(dim=0).numpy()
     if not np.linalg.norm(normal_sum) > 0:
@@ -175,6 +193,20 @@ def _eye_frame(mesh: Mesh, part: Mesh, surfaces: list[int], size: int):
     # float64 until the upload, relative to the surface's centre (precision far from the origin).
     eye_space = (world - center) @ basis.T
     lo, hi = eye_space[used].min(axis=0), eye_space[used].max(axis=0)
+    return SurfaceFrame(basis, center, lo, hi), eye_space
+
+
+def _eye_frame(mesh: Mesh, part: Mesh, surfaces: list[int], size: int):
+    """Where ``part`` is seen straight on along its area-weighted mean normal.
+
+    Returns:
+        eye_space: (V, 3) float64 every vertex of ``mesh`` in the view's frame (right, up,
+            towards the viewer), relative to the part's centre.
+        lo, hi: (3,) float64 the corners of the part's bounding box in that frame.
+        width, height: the image size in pixels, the longer side ``size``.
+    """
+    frame, eye_space = _frame(mesh, part, surfaces)
+    lo, hi = frame.lo, frame.hi
     extent_u, extent_v = hi[0] - lo[0], hi[1] - lo[1]
     if not (extent_u > 0 and extent_v > 0):
         raise HemiradInputError(f"surface {surfaces} is seen edge-on along its mean normal; it cannot be shown straight on.")

@@ -23,6 +23,7 @@ The schema, all lengths in scene units::
     camera: {position: [...], look_at: [...], up: [0, 1, 0], fov: 40, width: 512,
              height: 512, exposure: auto, supersample: 3}
     solver: {max_shots: 500, unshot_fraction: 1.0e-3, resolution: 128, ambient: true}
+    falsecolour: [room.floor]          # surfaces drawn as false-colour maps of the light on them
 
 This module reads the top level, materials and objects; the checks of single values are in
 ``keys.py``, the YAML dialect in ``yamlfile.py``, mesh objects and their files in
@@ -56,7 +57,10 @@ __all__ = ["MAX_TRIANGLES", "SCENES_DIR", "bundled_scenes", "load_scene", "parse
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
-_TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver", "refine")
+_TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver", "refine", "falsecolour")
+
+#: The longest surface name ``falsecolour`` may hold: it becomes part of a file name.
+MAX_SURFACE_NAME = 200
 _MATERIAL_KEYS = ("reflectance", "emission")
 _COMMON_KEYS = ("type", "name", "material", "element_size", "patch_size")
 _OBJECT_KEYS = {
@@ -214,11 +218,23 @@ class _Reader(Checker):
         camera = read_camera(self, top["camera"])
         solver = read_solver(self, top.get("solver", {}))
         refine = read_refine(self, top.get("refine", {}))
+        surfaces = self.read_falsecolour(top.get("falsecolour", []))
         self.check_light(objects)
         self.check_object_sizes()
         self.check_triangle_budget()
         materials = list(self.materials.values()) + list(self.file_materials.values())
-        return Scene(materials, objects, camera, solver, refine, source)
+        return Scene(materials, objects, camera, solver, refine, source, falsecolour=surfaces)
+
+    def read_falsecolour(self, v) -> list[str]:
+        """A list of surface names; whether the scene has them is checked once it is meshed."""
+        if not isinstance(v, list):
+            self.fail("falsecolour", "a list of surface names such as [room.floor]", v,
+                      f"Write one name as [{v}]." if isinstance(v, str) and len(v) <= MAX_SURFACE_NAME else "")
+        for i, name in enumerate(v):
+            if not isinstance(name, str) or not 0 < len(name) <= MAX_SURFACE_NAME:
+                self.fail(f"falsecolour[{i}]", f"a surface name such as room.floor (1 to {MAX_SURFACE_NAME} "
+                          f"characters)", name)
+        return list(v)
 
     def read_materials(self, v):
         # empty (or absent) when every object takes its materials from its mesh file

@@ -185,6 +185,9 @@ class Scene:
     # Keys whose value a command-line option set, e.g. {"solver.resolution": "--resolution"}:
     # an error about such a value names the option, not the scene file.
     command_line: dict[str, str] = field(default_factory=dict)
+    # Surfaces (names as for refine.view_surface) drawn as false-colour maps of the light
+    # falling on them, one falsecolour_<name>.png each.
+    falsecolour: list[str] = field(default_factory=list)
 
     def with_element_sizes_scaled(self, factor: float) -> "Scene":
         """A copy of the scene with every element size (room faces' too) times ``factor``."""
