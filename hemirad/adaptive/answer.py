@@ -99,14 +99,14 @@ def regather(solver: "ProgressiveSolver", parent: torch.Tensor, split: torch.Ten
     tree = patches.tree
     for node in flatnonzero(patches.sent.abs().sum(1) > 0).tolist():
         F = solver.form_factors_of(node)  # rendered on the refined mesh and kept
-        gathered += F.index_select(0, changed)[:, None] * patches.sent[node]
+        part = F.index_select(0, changed)[:, None] * patches.sent[node]  # (C, 3)
         near = solver.near_receivers_of(node, F, among=changed)
         if near is not None and len(near.rows):
             # near the node, its light as its initial elements sent it (``nearfield``), unscaled:
             # the per-element scaling below keeps the totals
             lo, hi = int(tree.lo[node]), int(tree.hi[node])
-            spread = near.weights.T @ patches.sent_by_leaf[lo:hi]  # (n, 3)
-            gathered[torch.searchsorted(changed, near.rows)] = spread
+            part[torch.searchsorted(changed, near.rows)] = near.weights.T @ patches.sent_by_leaf[lo:hi]
+        gathered += part
     # each split element's children share exactly what it had received
     total = torch.zeros_like(received).index_add_(0, which, gathered)
     scale = torch.where(total > 0, received / total.clamp(min=1e-300), torch.zeros_like(total))
@@ -133,7 +133,8 @@ class RoundReport:
 
 def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elements: int, tolerance: float,
                      rounds: int, shoot_on: Callable[[], None],
-                     report: Callable[[RoundReport], None] | None = None) -> list[RoundReport]:
+                     report: Callable[[RoundReport], None] | None = None,
+                     fraction: float = 1.0 / 3.0) -> list[RoundReport]:
     """Alternate shooting to the stopping rule (``shoot_on``) and refining where the answer
     is worst, until the estimated relative error is under ``tolerance``, the mesh has
     ``max_elements``, or ``rounds`` refinements were made. Each round may at most double
@@ -150,7 +151,7 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
         estimate = estimated_relative_error(mesh, shown, errors)
         reports.append(RoundReport(index, mesh.num_elements, 0, estimate, solver.state.shots))
         room = (max_elements - mesh.num_elements) // (refiner.children - 1)
-        count = min(room, mesh.num_elements // (refiner.children - 1))
+        count = min(room, int(fraction * mesh.num_elements))
         if index == rounds or estimate <= tolerance or count <= 0:
             break
         splittable = refiner.splittable(mesh, torch.empty(0, dtype=torch.int64, device=solver.device))
