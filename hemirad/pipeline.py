@@ -2,6 +2,7 @@
 
     result = hemirad.solve(hemirad.load_scene("cornell_box"))
     result.write("out/")    # image.png, mesh.png, mesh.ply, mesh.glb, stats.json
+                            # (and sensors.csv, grid_<name>.csv for a scene's sensors and grids)
 
     # a long run that can be killed, then continued by the same call with resume=True
     # (to the same result, bit for bit)
@@ -28,6 +29,9 @@ from hemirad.core.device import select_device
 from hemirad.core.errors import HemiradInputError, SceneError, bounded_repr
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import angle_quality
+from hemirad.lighting import photometry, survey
+from hemirad.lighting.grids import MAX_GRID_POINTS, grid_counts, grid_spacing
+from hemirad.lighting.sensors import SENSOR_RESOLUTION, irradiance_at
 from hemirad.output import display, export, gltf
 from hemirad.output.meshview import pick_surface, surface_view
 from hemirad.output.render import render_view
@@ -37,7 +41,8 @@ from hemirad.transport.gl import GLContext, check_image_size
 from hemirad.transport.solver import ProgressiveSolver, ShotReport, ambient_term
 
 
-#: The files ``Result.write`` makes in an output folder, by kind.
+#: The files ``Result.write`` makes in an output folder, by kind; besides them, a scene with
+#: sensors or grids gets ``sensors.csv`` and ``grid_<name>.csv`` (``survey.output_names``).
 OUTPUT_FILES = {"image": "image.png", "mesh view": "mesh.png", "mesh": "mesh.ply", "glTF": "mesh.glb",
                 "stats": "stats.json"}
 
@@ -54,7 +59,13 @@ class Result:
         unshot: (T, 3) unshot radiosity left when the solver stopped.
         reflectance, emission: (T, 3) per element.
         stats: what stats.json holds: element counts (initial, final, per level), splits,
-            shots, unshot fraction, emitted / absorbed / escaped power, seconds per phase.
+            shots, unshot fraction, emitted / absorbed / escaped power, seconds per phase,
+            the grids' statistics.
+        sensors: the scene's sensors read on the solved mesh (``survey.SensorReadings``:
+            names, points, irradiance (N, 3), lux (N,)), or None when it has none.
+        grids: each grid's readings by name (``survey.GridReadings``: points (rows,
+            columns, 3), irradiance, lux (rows, columns), statistics).
+        Both are computed by ``solve``, after the last shot, from ``display_radiosity``.
     """
 
     scene: Scene
@@ -64,6 +75,8 @@ class Result:
     reflectance: torch.Tensor
     emission: torch.Tensor
     stats: dict = field(default_factory=dict)
+    sensors: survey.SensorReadings | None = None
+    grids: dict[str, survey.GridReadings] = field(default_factory=dict)
 
     @property
     def ambient(self) -> torch.Tensor:
@@ -76,6 +89,20 @@ class Result:
     def display_radiosity(self) -> torch.Tensor:
         """(T, 3) radiosity as shown: B plus the reflected ambient term."""
         return self.radiosity + self.reflectance * self.ambient
+
+    def irradiance_at(self, points, normals, resolution: int = SENSOR_RESOLUTION) -> torch.Tensor:
+        """(N, 3) the irradiance at any ``points`` (N, 3) on small areas facing ``normals``
+        (N, 3), gathered from ``display_radiosity`` by a hemicube at each point."""
+        return irradiance_at(self.mesh, self.display_radiosity, points, normals, resolution)
+
+    def illuminance_at(self, points, normals, resolution: int = SENSOR_RESOLUTION) -> torch.Tensor:
+        """(N,) the illuminance in lux at ``points`` facing ``normals`` (see ``irradiance_at``)."""
+        return photometry.illuminance(self.irradiance_at(points, normals, resolution), self.scene.units)
+
+    def luminance(self) -> torch.Tensor:
+        """(T,) every element's luminance in cd/m^2 (Lambertian: its display radiosity's
+        illuminance-equivalent over pi)."""
+        return photometry.luminance_cd(self.display_radiosity, self.scene.units)
 
     def vertex_radiosity(self) -> torch.Tensor:
         """(V, 3) display radiosity at the vertices: area-weighted within each surface, and at
@@ -106,14 +133,20 @@ class Result:
 
     def write(self, folder) -> dict[str, Path]:
         """Write image.png, mesh.png, mesh.ply, mesh.glb and stats.json into ``folder`` (made if
-        missing), each atomically, under the folder's lock (``output_lock``); returns their
-        paths by kind. Raises HemiradInputError if it cannot write, another run holds the
-        folder, or a result is not finite (then nothing is written)."""
-        with output_lock(folder) as folder:
+        missing), and sensors.csv and grid_<name>.csv for the scene's sensors and grids,
+        each atomically, under the folder's lock (``output_lock``); returns their paths by
+        kind. Raises HemiradInputError if it cannot write, another run holds the folder, or
+        a result is not finite (then nothing is written)."""
+        with output_lock(folder, survey.output_names(self.scene)) as folder:
             return self._write(folder)
 
     def _write(self, folder: Path) -> dict[str, Path]:
         paths = {kind: folder / name for kind, name in OUTPUT_FILES.items()}
+        tables = {}
+        if self.sensors is not None:
+            tables["sensors"] = (folder / "sensors.csv", self.sensors.table())
+        for name, grid in self.grids.items():
+            tables[f"grid {name}"] = (folder / grid.file_name, grid.table())
         vertex = self.vertex_radiosity()
         check_finite(self, vertex)  # before anything is written
         start = time.perf_counter()
@@ -122,6 +155,9 @@ class Result:
         rendered = time.perf_counter()
         export.write_ply(paths["mesh"], self.mesh, vertex, display.to_srgb8(vertex.numpy(), self.exposure()))
         self.write_glb(paths["glTF"], vertex)
+        for kind, (path, (header, rows)) in tables.items():
+            export.write_csv(path, header, rows)
+            paths[kind] = path
         self.stats.setdefault("seconds", {}).update(
             render=rendered - start, export=time.perf_counter() - rendered)
         export.write_stats(paths["stats"], self.stats)
@@ -176,9 +212,10 @@ def check_gl_limits(scene: Scene, gpu: bool = False) -> None:
         raise refusal(GLContext.max_image_size(gpu))
 
 
-def prepare_output_folder(folder) -> Path:
+def prepare_output_folder(folder, names=()) -> Path:
     """Create ``folder`` (and its parents) if needed; HemiradInputError when it cannot be
-    written, or when one of the files a run writes there is a folder (or not a file)."""
+    written, or when one of the files a run writes there (``OUTPUT_FILES``, the checkpoint
+    and ``names``) is a folder (or not a file)."""
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -186,7 +223,7 @@ def prepare_output_folder(folder) -> Path:
         raise HemiradInputError(f"cannot create the output folder {folder}: {exc.strerror or exc}.") from exc
     if not os.access(folder, os.W_OK):
         raise HemiradInputError(f"the output folder {folder} is not writable.")
-    for name in (*OUTPUT_FILES.values(), checkpoints.FILENAME):
+    for name in (*OUTPUT_FILES.values(), checkpoints.FILENAME, *names):
         path = folder / name
         if path.exists() and not path.is_file():
             raise HemiradInputError(f"cannot write {path}: it exists and is not a regular file "
@@ -200,11 +237,12 @@ _held: dict[Path, object] = {}  # output folders this process holds the lock of
 
 
 @contextlib.contextmanager
-def output_lock(folder):
-    """Hold ``folder`` (prepared, see ``prepare_output_folder``) for one run: a second run
-    writing there is refused (HemiradInputError) until this one ends, and the temporary
-    files a killed run left there are removed. Re-entrant within a process; yields the folder."""
-    folder = prepare_output_folder(folder)
+def output_lock(folder, names=()):
+    """Hold ``folder`` (prepared, see ``prepare_output_folder``; ``names``: the files a run
+    writes there besides ``OUTPUT_FILES``) for one run: a second run writing there is
+    refused (HemiradInputError) until this one ends, and the temporary files a killed run
+    left there are removed. Re-entrant within a process; yields the folder."""
+    folder = prepare_output_folder(folder, names)
     key = folder.resolve()
     if key in _held:
         yield folder
@@ -221,7 +259,7 @@ def output_lock(folder):
                                     f"it to finish or choose another folder (-o).") from exc
         _held[key] = handle
         try:
-            remove_stale_temporaries(folder, (*OUTPUT_FILES.values(), checkpoints.FILENAME))
+            remove_stale_temporaries(folder, (*OUTPUT_FILES.values(), checkpoints.FILENAME, *names))
             yield folder
         finally:
             del _held[key]
@@ -257,9 +295,22 @@ def _key_error(scene: Scene, key: str, expected: str, got: object = ..., hint: s
     return HemiradInputError(f"{option} (given on the command line, for {key}): expected {expected}{shown}. {hint}")
 
 
+def check_grid_sizes(scene: Scene) -> None:
+    """Refuse a grid of more than ``MAX_GRID_POINTS`` points (each a hemicube), before meshing."""
+    for grid in scene.grids:
+        columns, rows = grid_counts(grid, scene.metres_per_unit)
+        if columns * rows > MAX_GRID_POINTS:
+            spacing = grid_spacing(grid, scene.metres_per_unit)
+            raise _key_error(scene, f"{grid.key}.spacing" if grid.spacing is not None else grid.key,
+                             f"a grid of at most {MAX_GRID_POINTS:,} points (each is a hemicube rendered)",
+                             hint=f"At a spacing of {spacing:.4g} scene units it has {columns:,} x {rows:,} "
+                                  f"points; give a larger spacing.")
+
+
 def check_before_solving(scene: Scene, mesh: Mesh, solver: ProgressiveSolver) -> None:
     """What can only be checked once the scene is meshed, checked before any shot: the
-    surface ``refine.view_surface`` names, and an emitted power that is finite and positive."""
+    surface ``refine.view_surface`` names, an emitted power that is finite and positive,
+    and grids that see some surface (a hemicube at their points until one does)."""
     try:
         pick_surface(mesh, scene.refine.view_surface)
     except HemiradInputError as exc:
@@ -270,6 +321,10 @@ def check_before_solving(scene: Scene, mesh: Mesh, solver: ProgressiveSolver) ->
         raise _key_error(scene, "materials", "emissions and areas whose emitted power is finite and positive",
                          hint=f"The emitting surfaces give a power of {power.tolist()}: the emissions or "
                               f"the emitters' sizes are too extreme to compute with.")
+    for grid in survey.blind_grids(scene, mesh):
+        raise _key_error(scene, grid.key, "a grid that sees some surface of the scene",
+                         hint=f"No point of grid {grid.name!r} sees any surface, front or back: it lies outside "
+                              f"the scene, or faces away from all of it (its normal is {list(grid.normal)}).")
 
 
 def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, checkpoint=None,
@@ -306,6 +361,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
                 raise _key_error(scene, "solver.max_shots", f"at least the {saved[0]['shots']} shots the "
                                  f"checkpoint {checkpoint} already holds, to resume it", options.max_shots,
                                  "A resumed run only adds shots; start without --resume for a shorter run.")
+    check_grid_sizes(scene)
     start = time.perf_counter()
     mesh = build_mesh(scene)
     meshed = time.perf_counter()
@@ -335,8 +391,17 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
         solver.close()
     final = solver.mesh.to("cpu")
     stats = _stats(scene, solver, final, mesh.num_elements, elapsed(), resumed_from)
-    return Result(scene, final, state.radiosity.cpu(), state.unshot.cpu(), solver.reflectance.cpu(),
-                  solver.emission.cpu(), stats)
+    stats.update(units=scene.units, metres_per_unit=scene.metres_per_unit,
+                 flux=photometry.flux_emissions(scene, mesh))
+    result = Result(scene, final, state.radiosity.cpu(), state.unshot.cpu(), solver.reflectance.cpu(),
+                    solver.emission.cpu(), stats)
+    if scene.sensors or scene.grids:
+        measured = time.perf_counter()
+        result.sensors, result.grids = survey.measure(scene, final, result.display_radiosity)
+        stats["sensors"] = len(scene.sensors)
+        stats["grids"] = {name: grid.stats(scene.metres_per_unit) for name, grid in result.grids.items()}
+        stats["seconds"]["sensors"] = time.perf_counter() - measured
+    return result
 
 
 class _CheckpointWriter:

@@ -21,10 +21,17 @@ The schema, all lengths in scene units::
     camera: {position: [...], look_at: [...], up: [0, 1, 0], fov: 40, width: 512,
              height: 512, exposure: auto, supersample: 3}
     solver: {max_shots: 500, unshot_fraction: 1.0e-3, resolution: 128, ambient: true}
+    units: photometric                 # emission in lm/m^2 (default radiometric: W/m^2)
+    unit: m                            # the scene unit, for grid spacing and flux
+    sensors: [{position: [...], normal: [0, 1, 0], name: desk}]
+    grids: [{name: desk, work_plane: {height: 0.75, min: [x, z], max: [x, z]}, spacing: 0.2}]
+
+A material may give ``flux: <lumens>`` (and ``colour``) instead of ``emission``.
 
 This module reads the top level, materials and objects; the checks of single values are in
 ``keys.py``, the YAML dialect in ``yamlfile.py``, mesh objects and their files in
-``meshfile.py``, and the camera, solver and refine blocks in ``options.py``.
+``meshfile.py``, the camera, solver and refine blocks in ``options.py``, and units,
+sensors and grids in ``sensorblocks.py``.
 """
 from __future__ import annotations
 
@@ -33,12 +40,14 @@ from typing import Any
 
 import numpy as np
 
+from hemirad.core.colour import REC709_LUMINANCE
 from hemirad.core.errors import SceneError
 from hemirad.scene.keys import Checker, closest, did_you_mean, join
 from hemirad.scene.meshfile import read_mesh_object
 from hemirad.scene.meshing import box_face_corners, quad_triangles
 from hemirad.scene.model import Box, FaceOverride, Material, MeshFile, Quad, Room, Scene, SceneObject
 from hemirad.scene.options import MAX_TRIANGLES, read_camera, read_patch_size, read_refine, read_solver
+from hemirad.scene.sensorblocks import read_grids, read_length_unit, read_sensors, read_units
 from hemirad.scene.yamlfile import parse_yaml
 
 #: How far (a fraction of its size) a quad's corners may lie off their mean plane. The
@@ -56,8 +65,12 @@ __all__ = ["MAX_TRIANGLES", "SCENES_DIR", "bundled_scenes", "load_scene", "parse
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
-_TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver", "refine")
-_MATERIAL_KEYS = ("reflectance", "emission")
+_TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver", "refine", "units", "unit", "sensors",
+             "grids")
+_MATERIAL_KEYS = ("reflectance", "emission", "flux", "colour")
+
+#: The luminous flux a material may give, in lumens (the brightest lamps give about 1e6).
+MAX_FLUX = 1e15
 _COMMON_KEYS = ("type", "name", "material", "element_size", "patch_size")
 _OBJECT_KEYS = {
     "room": _COMMON_KEYS + ("min", "max", "faces"),
@@ -204,10 +217,15 @@ class _Reader(Checker):
         camera = read_camera(self, top["camera"])
         solver = read_solver(self, top.get("solver", {}))
         refine = read_refine(self, top.get("refine", {}))
+        units = read_units(self, top["units"]) if "units" in top else "radiometric"
+        unit = read_length_unit(self, top["unit"]) if "unit" in top else 1.0
+        sensors = read_sensors(self, top["sensors"]) if "sensors" in top else []
+        grids = read_grids(self, top["grids"]) if "grids" in top else []
         self.check_light(objects)
         self.check_object_sizes()
         self.check_triangle_budget()
-        return Scene(list(self.materials.values()), objects, camera, solver, refine, source)
+        return Scene(list(self.materials.values()), objects, camera, solver, refine, source, sensors=sensors,
+                     grids=grids, units=units, metres_per_unit=unit)
 
     def read_materials(self, v):
         expected = "a non-empty mapping of material names to {reflectance, emission}"
@@ -228,7 +246,25 @@ class _Reader(Checker):
                                     f"three finite numbers >= 0 or one number (each 0 or from {MIN_EMISSION:g} "
                                     f"to {MAX_EMISSION:g}, so that radiosity fits the outputs' 32-bit floats)",
                                     lambda x: x == 0.0 or MIN_EMISSION <= x <= MAX_EMISSION)
-            self.materials[name] = Material(name, rho, emission)
+            material = Material(name, rho, emission)
+            if "flux" in spec:
+                if "emission" in spec:
+                    self.fail(f"{key}.flux", "either emission or flux, not both", spec["flux"],
+                              "Give the flux's colour as colour: [r, g, b].")
+                material.flux = self.bounded(spec["flux"], f"{key}.flux",
+                                             f"a luminous flux in lumens, > 0 and at most {MAX_FLUX:g}",
+                                             lambda x: 0 < x <= MAX_FLUX)
+            if "colour" in spec:
+                if "flux" not in spec:
+                    self.fail(f"{key}.colour", "a colour only beside flux (the colour of the light it gives)",
+                              spec["colour"], "An emission gives its colour itself.")
+                colour = self.rgb(spec["colour"], f"{key}.colour", "three numbers >= 0 or one number, "
+                                  "at most 1e6, not all 0 (only the colour counts, not the size)",
+                                  lambda x: 0 <= x <= 1e6)
+                if not sum(w * c for w, c in zip(REC709_LUMINANCE, colour)) > 0:
+                    self.fail(f"{key}.colour", "a colour with some luminance (not all zero)", list(colour))
+                material.colour = colour
+            self.materials[name] = material
 
     def read_objects(self, v) -> list[SceneObject]:
         expected = "a non-empty list of objects (room, box, quad, mesh)"
@@ -381,9 +417,9 @@ class _Reader(Checker):
     def check_light(self, objects: list[SceneObject]):
         used = {o.material for o in objects}
         used |= {f.material for o in objects if isinstance(o, Room) for f in o.faces.values() if f.material}
-        if any(max(self.materials[n].emission) > 0 for n in used):
+        if any(self.materials[n].emits for n in used):
             return
-        emitting = [n for n, m in self.materials.items() if max(m.emission) > 0]
+        emitting = [n for n, m in self.materials.items() if m.emits]
         hint = "The scene has no light: nothing would be lit. "
         if emitting:
             hint += f"The material(s) {', '.join(emitting)} emit but no object uses them."
