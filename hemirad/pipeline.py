@@ -100,8 +100,9 @@ class Result:
         return photometry.illuminance(self.irradiance_at(points, normals, resolution), self.scene.units)
 
     def luminance(self) -> torch.Tensor:
-        """(T,) every element's luminance in cd/m^2 (Lambertian: its display radiosity's
-        illuminance-equivalent over pi)."""
+        """(T,) every element's luminance in cd/m^2: the Rec. 709 luminance of its display
+        radiosity in lm/m^2 (times 683 lm/W in a radiometric scene) over pi, as a
+        Lambertian surface's."""
         return photometry.luminance_cd(self.display_radiosity, self.scene.units)
 
     def vertex_radiosity(self) -> torch.Tensor:
