@@ -155,3 +155,29 @@ def test_a_scene_lit_only_by_a_flux_is_lit():
     scene = parse_scene(yaml.safe_load(source), folder=SMALL_ROOM.parent)
     assert scene.units == "radiometric" and scene.metres_per_unit == 1.0
     assert next(m for m in scene.materials if m.name == "lamp").flux == 500
+
+
+def test_checkpoints_see_a_flux_and_its_units_and_no_more():
+    """A scene without a flux hashes its materials as before flux existed (name, reflectance,
+    emission), so earlier checkpoints still resume; a flux's exitance depends on the length
+    unit and on lumens or watts, so changing either refuses its checkpoint."""
+    import hashlib
+    import json
+
+    from hemirad import checkpoint
+
+    scene = hemirad.load_scene("office")
+    before = [{"name": m.name, "reflectance": list(m.reflectance), "emission": list(m.emission)}
+              for m in scene.materials]
+    digest = hashlib.sha256(json.dumps(before, sort_keys=True).encode()).hexdigest()
+    assert checkpoint.fingerprint(scene)["materials"] == digest
+    scene.units, scene.metres_per_unit = "photometric", 0.01  # no flux: nothing the solve uses changed
+    assert checkpoint.fingerprint(scene)["materials"] == digest
+
+    lit = hemirad.load_scene("office_lighting")
+    prints = [checkpoint.fingerprint(lit)["materials"]]
+    lit.metres_per_unit = 0.01
+    prints.append(checkpoint.fingerprint(lit)["materials"])
+    lit.units = "radiometric"
+    prints.append(checkpoint.fingerprint(lit)["materials"])
+    assert len(set(prints)) == 3
