@@ -10,6 +10,7 @@ from hemirad.adaptive.shooter_split import point_source_test
 from hemirad.core.device import select_device
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patches import build_patches, element_sides
+from hemirad.lighting.photometry import emission_table
 from hemirad.scene.meshing import build_mesh, surface_objects
 from hemirad.scene.model import Scene
 from hemirad.transport.shooters import PatchShooters, either, hidden_centroid_test
@@ -24,7 +25,8 @@ NEAR_REACH = 3.0
 def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device | str | None = None,
                 cull: bool = True, relabel: bool = True, bound: bool = True) -> ProgressiveSolver:
     """The progressive solver for ``scene``: its initial ``mesh`` (``build_mesh(scene)`` when
-    None) with the materials' reflectance and emission, the hemicube resolution of
+    None) with the materials' reflectance and emission (a flux made an exitance over the
+    material's area in ``mesh``), the hemicube resolution of
     ``scene.solver``, the patches that shoot unless ``scene.solver.patch_size`` is none
     (with the hidden-centroid test, and eq. 7's with ``shooter_split``), and a ``Refiner``
     when ``scene.refine`` asks for refinement.
@@ -36,7 +38,7 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
     """
     mesh = build_mesh(scene) if mesh is None else mesh
     reflectance = scene.reflectance_table()[mesh.material]
-    emission = scene.emission_table()[mesh.material]
+    emission = emission_table(scene, mesh)[mesh.material]  # a material's flux spread over its area
     per_shot = scene.refine.enabled and not scene.refine.by_answer  # the answer's rounds run in pipeline.solve
     refiner = Refiner(scene.refine, emission, relabel=relabel, bound=bound) if per_shot else None
     device = torch.device(select_device(scene.solver.device) if device is None else device)

@@ -80,6 +80,11 @@ def fingerprint(scene: Scene) -> dict[str, object]:
     differently; a release that changes neither resumes its predecessor's checkpoints.
     """
     materials = [dataclasses.asdict(m) for m in scene.materials]
+    for described in materials:  # a material without a flux is described as before flux existed
+        if described["flux"] is None:
+            del described["flux"], described["colour"]
+        else:  # its exitance depends on the length unit and on lumens or watts
+            described.update(metres_per_unit=scene.metres_per_unit, units=scene.units)
     return {
         "checkpoint format": FORMAT,
         "solver arithmetic": solver_module.ARITHMETIC,

@@ -14,6 +14,7 @@ from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.patterns import PATTERN_CHOICES, describe_patterns
 from hemirad.scene.loader import MAX_SURFACE_NAME, MAX_TRIANGLES, bundled_scenes, load_scene
 from hemirad.scene.model import CRITERION_NAMES, RefineOptions
+from hemirad.scene.sensorfile import read_sensor_file
 
 
 def _number(text: str, kind=float):
@@ -116,6 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--patch-size", type=_patch_size, metavar="auto|none|SIZE",
                         help="patches that shoot for their elements: auto (about 2 x 2 elements), a side "
                              "length, or none: every element shoots, as in the paper (solver.patch_size)")
+    parser.add_argument("--sensors", type=Path, metavar="FILE",
+                        help="also read the irradiance and illuminance at the sensors of FILE, a CSV of lines "
+                             "x,y,z,nx,ny,nz[,name] (a header line and # comments allowed); writes OUT/sensors.csv")
     parser.add_argument("--device", type=_device,
                         help="where the solve runs (solver.device): " +
                              "; ".join(f"{name}, {meaning}" for name, meaning in DEVICES.items()))
@@ -213,6 +217,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     if args.falsecolour:
         scene.falsecolour = list(args.falsecolour)
         scene.command_line.update({f"falsecolour[{i}]": "--falsecolour" for i in range(len(args.falsecolour))})
+    if args.sensors is not None:
+        scene.sensors += read_sensor_file(args.sensors, {s.name for s in scene.sensors}, len(scene.sensors))
     name = scene.source.stem if scene.source else str(args.scene)
     # Held until the outputs are written: checked (and a second run refused) before solving, not after.
     with output_lock(args.output or Path(f"{name}_out"), output_names(scene)) as output:
@@ -247,7 +253,32 @@ def _solve_and_write(args: argparse.Namespace, argv: list[str] | None, scene, ou
         f"{stats['unshot_fraction']:.3g}, {time.perf_counter() - start:.1f} s")
     for kind, path in paths.items():
         say(f"  {kind:10s} {path}")
+    for line in lighting_table(result):
+        say(line)
     return 0
+
+
+def lighting_table(result) -> list[str]:
+    """The lines printed after a run for its sensors and grids: illuminance in lux, and
+    each grid's EN 12464-1 figures (mean, minimum, maximum, the two uniformities)."""
+    def ratio(x) -> str:
+        return "-" if x is None else f"{x:.2f}"
+
+    lines = []
+    if result.sensors is not None:
+        width = max(6, *(len(n) for n in result.sensors.names))
+        lines += ["sensors:", f"  {'name':{width}s} {'lux':>10s}"]
+        lines += [f"  {name:{width}s} {lux:10.4g}" for name, lux in zip(result.sensors.names,
+                                                                         result.sensors.lux.tolist())]
+    if result.grids:
+        width = max(4, *(len(n) for n in result.grids))
+        lines += ["grids (lux):", f"  {'grid':{width}s} {'points':>9s} {'spacing':>9s} {'Em':>9s} {'Emin':>9s} "
+                                  f"{'Emax':>9s} {'U0':>5s} {'Emin/Emax':>9s}"]
+        for name, grid in result.grids.items():
+            st, (rows, columns) = grid.statistics, grid.layout.shape
+            lines.append(f"  {name:{width}s} {f'{columns}x{rows}':>9s} {grid.layout.spacing:9.3g} {st['Em']:9.4g} "
+                         f"{st['Emin']:9.4g} {st['Emax']:9.4g} {ratio(st['U0']):>5s} {ratio(st['Emin_Emax']):>9s}")
+    return lines
 
 
 def _interrupted(checkpoint: Path | None, argv: list[str] | None) -> str:

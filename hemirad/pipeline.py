@@ -2,6 +2,7 @@
 
     result = hemirad.solve(hemirad.load_scene("cornell_box"))
     result.write("out/")    # image.png, image.exr, luminance.png, mesh.png, mesh.ply, mesh.glb, stats.json
+                            # (and sensors.csv, grid_<name>.csv for a scene's sensors and grids)
 
     # a long run that can be killed, then continued by the same call with resume=True
     # (to the same result, bit for bit)
@@ -34,6 +35,9 @@ from hemirad.core.device import select_device
 from hemirad.core.errors import HemiradInputError, SceneError, bounded_repr
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import angle_quality
+from hemirad.lighting import photometry, survey
+from hemirad.lighting.grids import MAX_GRID_POINTS, grid_counts, grid_spacing
+from hemirad.lighting.sensors import SENSOR_RESOLUTION, irradiance_at
 from hemirad.output import display, export, falsecolour, gltf
 from hemirad.output.meshview import pick_surface, surface_view
 from hemirad.output.render import render_view
@@ -62,7 +66,8 @@ def falsecolour_file(surface: str) -> str:
 
 def output_names(scene: Scene) -> list[str]:
     """Every file name a run of ``scene`` writes into its output folder (not the checkpoint)."""
-    return [*OUTPUT_FILES.values(), *dict.fromkeys(falsecolour_file(name) for name in scene.falsecolour)]
+    return [*OUTPUT_FILES.values(), *dict.fromkeys(falsecolour_file(name) for name in scene.falsecolour),
+            *survey.output_names(scene)]
 
 
 @dataclass
@@ -77,7 +82,13 @@ class Result:
         unshot: (T, 3) unshot radiosity left when the solver stopped.
         reflectance, emission: (T, 3) per element.
         stats: what stats.json holds: element counts (initial, final, per level), splits,
-            shots, unshot fraction, emitted / absorbed / escaped power, seconds per phase.
+            shots, unshot fraction, emitted / absorbed / escaped power, seconds per phase,
+            the grids' statistics.
+        sensors: the scene's sensors read on the solved mesh (``survey.SensorReadings``:
+            names, points, irradiance (N, 3), lux (N,)), or None when it has none.
+        grids: each grid's readings by name (``survey.GridReadings``: points (rows,
+            columns, 3), irradiance, lux (rows, columns), statistics).
+        Both are computed by ``solve``, after the last shot, from ``display_radiosity``.
     """
 
     scene: Scene
@@ -87,6 +98,8 @@ class Result:
     reflectance: torch.Tensor
     emission: torch.Tensor
     stats: dict = field(default_factory=dict)
+    sensors: survey.SensorReadings | None = None
+    grids: dict[str, survey.GridReadings] = field(default_factory=dict)
 
     @property
     def ambient(self) -> torch.Tensor:
@@ -99,6 +112,21 @@ class Result:
     def display_radiosity(self) -> torch.Tensor:
         """(T, 3) radiosity as shown: B plus the reflected ambient term."""
         return self.radiosity + self.reflectance * self.ambient
+
+    def irradiance_at(self, points, normals, resolution: int = SENSOR_RESOLUTION) -> torch.Tensor:
+        """(N, 3) the irradiance at any ``points`` (N, 3) on small areas facing ``normals``
+        (N, 3), gathered from ``display_radiosity`` by a hemicube at each point."""
+        return irradiance_at(self.mesh, self.display_radiosity, points, normals, resolution)
+
+    def illuminance_at(self, points, normals, resolution: int = SENSOR_RESOLUTION) -> torch.Tensor:
+        """(N,) the illuminance in lux at ``points`` facing ``normals`` (see ``irradiance_at``)."""
+        return photometry.illuminance(self.irradiance_at(points, normals, resolution), self.scene.units)
+
+    def luminance(self) -> torch.Tensor:
+        """(T,) every element's luminance in cd/m^2: the Rec. 709 luminance of its display
+        radiosity in lm/m^2 (times 683 lm/W in a radiometric scene) over pi, as a
+        Lambertian surface's."""
+        return photometry.luminance_cd(self.display_radiosity, self.scene.units)
 
     def vertex_radiosity(self) -> torch.Tensor:
         """(V, 3) display radiosity at the vertices: area-weighted within each surface, and at
@@ -170,12 +198,12 @@ class Result:
         return display.to_srgb8(linear, self.exposure())
 
     def write(self, folder) -> dict[str, Path]:
-        """Write image.png, image.exr, luminance.png, mesh.png, mesh.ply, mesh.glb, stats.json
-        and a falsecolour_<surface>.png for each surface the scene's ``falsecolour`` names into
-        ``folder`` (made if missing), each atomically, under the folder's lock
-        (``output_lock``); returns their paths by kind. Raises HemiradInputError if it cannot
-        write, another run holds the folder, or a result is not finite (then nothing is
-        written)."""
+        """Write image.png, image.exr, luminance.png, mesh.png, mesh.ply, mesh.glb, stats.json,
+        a falsecolour_<surface>.png for each surface the scene's ``falsecolour`` names, and
+        sensors.csv and grid_<name>.csv for the scene's sensors and grids into ``folder``
+        (made if missing), each atomically, under the folder's lock (``output_lock``);
+        returns their paths by kind. Raises HemiradInputError if it cannot write, another
+        run holds the folder, or a result is not finite (then nothing is written)."""
         with output_lock(folder, output_names(self.scene)) as folder:
             return self._write(folder)
 
@@ -183,6 +211,11 @@ class Result:
         paths = {kind: folder / name for kind, name in OUTPUT_FILES.items()}
         surfaces = dict.fromkeys(self.scene.falsecolour)
         paths.update({f"falsecolour {name}": folder / falsecolour_file(name) for name in surfaces})
+        tables = {}
+        if self.sensors is not None:
+            tables["sensors"] = (folder / "sensors.csv", self.sensors.table())
+        for name, grid in self.grids.items():
+            tables[f"grid {name}"] = (folder / grid.file_name, grid.table())
         vertex = self.vertex_radiosity()
         check_finite(self, vertex)  # before anything is written
         start = time.perf_counter()
@@ -196,6 +229,9 @@ class Result:
         rendered = time.perf_counter()
         export.write_ply(paths["mesh"], self.mesh, vertex, display.to_srgb8(vertex.numpy(), self.exposure()))
         self.write_glb(paths["glTF"], vertex)
+        for kind, (path, (header, rows)) in tables.items():
+            export.write_csv(path, header, rows)
+            paths[kind] = path
         self.stats.setdefault("seconds", {}).update(
             render=rendered - start, export=time.perf_counter() - rendered)
         export.write_stats(paths["stats"], self.stats)
@@ -346,12 +382,23 @@ def _surface_hint(mesh: Mesh, name: str, error: HemiradInputError) -> str:
     shown = ", ".join(names[:12]) + (f" and {len(names) - 12} more" if len(names) > 12 else "")
     near = f" The closest names: {', '.join(close)}." if close else ""
     return f"No surface named {bounded_repr(name)}.{near} The scene's surfaces: {shown}."
+def check_grid_sizes(scene: Scene) -> None:
+    """Refuse a grid of more than ``MAX_GRID_POINTS`` points (each a hemicube), before meshing."""
+    for grid in scene.grids:
+        columns, rows = grid_counts(grid, scene.metres_per_unit)
+        if columns * rows > MAX_GRID_POINTS:
+            spacing = grid_spacing(grid, scene.metres_per_unit)
+            raise _key_error(scene, f"{grid.key}.spacing" if grid.spacing is not None else grid.key,
+                             f"a grid of at most {MAX_GRID_POINTS:,} points (each is a hemicube rendered)",
+                             hint=f"At a spacing of {spacing:.4g} scene units it has {columns:,} x {rows:,} "
+                                  f"points; give a larger spacing.")
 
 
 def check_before_solving(scene: Scene, mesh: Mesh, solver: ProgressiveSolver) -> None:
     """What can only be checked once the scene is meshed, checked before any shot: the
-    surfaces ``refine.view_surface`` and ``falsecolour`` name, and an emitted power that is
-    finite and positive."""
+    surfaces ``refine.view_surface`` and ``falsecolour`` name, an emitted power that is
+    finite and positive, and grids that see some surface (a hemicube at their points until
+    one does)."""
     try:
         pick_surface(mesh, scene.refine.view_surface)
     except HemiradInputError as exc:
@@ -375,6 +422,10 @@ def check_before_solving(scene: Scene, mesh: Mesh, solver: ProgressiveSolver) ->
         raise _key_error(scene, "materials", "emissions and areas whose emitted power is finite and positive",
                          hint=f"The emitting surfaces give a power of {power.tolist()}: the emissions or "
                               f"the emitters' sizes are too extreme to compute with.")
+    for grid in survey.blind_grids(scene, mesh):
+        raise _key_error(scene, grid.key, "a grid that sees some surface of the scene",
+                         hint=f"No point of grid {grid.name!r} sees any surface, front or back: it lies outside "
+                              f"the scene, or faces away from all of it (its normal is {list(grid.normal)}).")
 
 
 def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, checkpoint=None,
@@ -412,6 +463,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
                 raise _key_error(scene, "solver.max_shots", f"at least the {saved[0]['shots']} shots the "
                                  f"checkpoint {checkpoint} already holds, to resume it", options.max_shots,
                                  "A resumed run only adds shots; start without --resume for a shorter run.")
+    check_grid_sizes(scene)
     start = time.perf_counter()
     mesh = build_mesh(scene)
     meshed = time.perf_counter()
@@ -446,9 +498,17 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
         solver.close()
     final = solver.mesh.to("cpu")
     stats = _stats(scene, solver, final, mesh.num_elements, elapsed(), resumed_from, rounds, answer_refiner)
-    return Result(scene, final, state.radiosity.cpu(), state.unshot.cpu(), solver.reflectance.cpu(),
-                  solver.emission.cpu(), stats)
-
+    stats.update(units=scene.units, metres_per_unit=scene.metres_per_unit,
+                 flux=photometry.flux_emissions(scene, mesh))
+    result = Result(scene, final, state.radiosity.cpu(), state.unshot.cpu(), solver.reflectance.cpu(),
+                    solver.emission.cpu(), stats)
+    if scene.sensors or scene.grids:
+        measured = time.perf_counter()
+        result.sensors, result.grids = survey.measure(scene, final, result.display_radiosity)
+        stats["sensors"] = len(scene.sensors)
+        stats["grids"] = {name: grid.stats(scene.metres_per_unit) for name, grid in result.grids.items()}
+        stats["seconds"]["sensors"] = time.perf_counter() - measured
+    return result
 
 def _check_answer_refinement(scene: Scene, checkpoint) -> None:
     """Refinement judged on the answer needs patches (it regathers what each node sent) and

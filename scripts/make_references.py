@@ -2,6 +2,7 @@
 
     python scripts/make_references.py [--scenes cornell_box floating] [--spp 32768]
                                       [--height 128] [--variant llvm_ad_rgb] [--out tests/references]
+    python scripts/make_references.py --scenes office_lighting --scaled-from office
 
 For every bundled scene (default) it renders the scene's own initial mesh with Mitsuba's
 path tracer (see ``hemirad.reference``) at the scene camera's aspect, ``--height`` pixels
@@ -14,6 +15,13 @@ their difference measures its own noise:
 
 (Gaussian noise: E|N(0, s^2 / 2)| = E|N(0, 2 s^2)| / 2). Those, and the SSIM between the
 halves, are stored with the reference, over the same surface pixels the tests use.
+
+``--scaled-from OTHER`` makes a scene's reference from OTHER's without rendering, where
+the two differ only in how much light they emit: the same mesh, camera and reflectances,
+and every emission OTHER's times one factor k. Light transport is linear in the emitted
+light, and the path tracer's random choices (Russian roulette on the path throughput) do
+not depend on it, so the rendering would be k times OTHER's, sample for sample, noise
+included; the JSON says it was derived so.
 
 Mitsuba is optional: ``pip install 'hemirad[reference]'``. The LLVM variant is used when
 it runs (on Debian it needs the package libllvm19), the scalar one otherwise (10-30x slower).
@@ -31,6 +39,7 @@ import torch
 
 import hemirad
 from hemirad.evaluation import metrics, reference
+from hemirad.lighting.photometry import emission_table
 from hemirad.scene.meshing import build_mesh
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -61,8 +70,8 @@ def make(name: str, spp: int, height: int, out: Path, seed: int, variant: str) -
     a, b = halves
     mean = 0.5 * (a + b)
 
-    emitters = [m for m in scene.materials if max(m.emission) > 0]
-    dimmest = min(float(metrics.luminance(np.array(m.emission))) for m in emitters) / np.pi
+    emitted = emission_table(scene, mesh).numpy()  # a flux made an exitance
+    dimmest = min(float(metrics.luminance(e)) for e in emitted if e.max() > 0) / np.pi
     mask = surface_pixels_from_reference(mean, dimmest)
     noise = {
         "relative_mse": metrics.relative_mse(a, b, mask) / 4.0,
@@ -89,6 +98,29 @@ def make(name: str, spp: int, height: int, out: Path, seed: int, variant: str) -
     return info
 
 
+def scaled(name: str, source: str, out: Path) -> dict:
+    """Write the reference of scene ``name`` as ``source``'s times the one factor between
+    their emissions (see the module's docstring); SystemExit when they differ otherwise."""
+    scene, other = hemirad.load_scene(name), hemirad.load_scene(source)
+    mesh, other_mesh = build_mesh(scene), build_mesh(other)
+    same_mesh = all(torch.equal(getattr(mesh, k), getattr(other_mesh, k)) for k in ("vertices", "triangles", "material"))
+    if not (same_mesh and scene.camera == other.camera and
+            [m.reflectance for m in scene.materials] == [m.reflectance for m in other.materials]):
+        raise SystemExit(f"{name} and {source} differ in more than their emissions: render {name} instead")
+    mine, theirs = emission_table(scene, mesh), emission_table(other, other_mesh)
+    factor = float(mine.max() / theirs.max())
+    if not torch.allclose(mine, theirs * factor, rtol=1e-12, atol=0.0):
+        raise SystemExit(f"{name}'s emissions are not {source}'s times one factor: render {name} instead")
+    ref = reference.Reference.load(out, source)
+    info = {**ref.info, "scene": name, "geometry": reference.geometry_summary(scene, mesh),
+            "derived": {"from": source, "factor": factor,
+                        "how": f"{source}'s radiance times the factor: the scenes differ only in their "
+                               f"emissions, all in this ratio, and light transport is linear in them"}}
+    paths = reference.Reference(ref.radiance * np.float32(factor), info).save(out, name)
+    print(f"{name}: {source}'s reference times {factor:.6g}; {', '.join(p.name for p in paths)}")
+    return info
+
+
 def _mitsuba_version() -> str:
     import mitsuba
     return mitsuba.__version__
@@ -102,7 +134,13 @@ def main(argv=None) -> int:
     parser.add_argument("--variant", default=None, help="a Mitsuba variant; default the fastest that runs")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=ROOT / "tests" / "references")
+    parser.add_argument("--scaled-from", metavar="OTHER",
+                        help="derive the scenes' references from OTHER's, which differs only in its emissions")
     args = parser.parse_args(argv)
+    if args.scaled_from:
+        for name in args.scenes or []:
+            scaled(name, args.scaled_from, args.out)
+        return 0
     torch.set_num_threads(1)  # Dr.Jit uses the cores; torch only meshes here
     variant = reference.select_variant(args.variant)
     for name in args.scenes or hemirad.bundled_scenes():

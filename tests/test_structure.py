@@ -6,7 +6,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "hemirad"
 # The pipeline, bottom up (docs/DESIGN.md §6); the top-level modules come last.
-LAYERS = ("core", "geometry", "scene", "transport", "adaptive", "output", "evaluation")
+LAYERS = ("core", "geometry", "scene", "transport", "adaptive", "lighting", "output", "evaluation")
 TOP = len(LAYERS)
 
 

@@ -7,6 +7,7 @@ from hemirad.core.device import as_tensor
 
 # Rec. 709 / sRGB primaries: relative luminance of linear RGB.
 REC709_LUMINANCE = (0.2126, 0.7152, 0.0722)
+LUMENS_PER_WATT = 683.0
 
 #: Luminous efficacy at 555 nm (lm/W), the SI definition of the candela: a radiometric
 #: quantity (W/m^2, or W/(m^2 sr)) times this, with its colour weighted by ``luminance``,

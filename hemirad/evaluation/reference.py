@@ -38,6 +38,7 @@ import torch
 
 from hemirad.core.errors import HemiradInputError
 from hemirad.geometry.mesh import Mesh
+from hemirad.lighting.photometry import emission_table
 from hemirad.output import display
 from hemirad.output.render import render_view
 from hemirad.scene.meshing import build_mesh
@@ -153,14 +154,20 @@ class Reference:
 
 def geometry_summary(scene: Scene, mesh: Mesh | None = None) -> dict:
     """What a reference was made from, to notice a scene changed since: the camera, the
-    materials, the triangle count and the total surface area (6 significant digits)."""
+    materials (a flux with the exitance it makes), the triangle count and the total
+    surface area (6 significant digits)."""
     mesh = build_mesh(scene) if mesh is None else mesh
     camera = dataclasses.asdict(scene.camera)
+    emission = emission_table(scene, mesh).tolist()
+    materials = {}
+    for m, emitted in zip(scene.materials, emission):
+        materials[m.name] = {"reflectance": list(m.reflectance), "emission": emitted}
+        if m.flux is not None:
+            materials[m.name]["flux"] = m.flux
     summary = {
         "triangles": mesh.num_elements,
         "surface_area": float(f"{float(mesh.areas.sum()):.6g}"),
-        "materials": {m.name: {"reflectance": list(m.reflectance), "emission": list(m.emission)}
-                      for m in scene.materials},
+        "materials": materials,
         "camera": {k: camera[k] for k in ("position", "look_at", "up", "fov")},
     }
     return json.loads(json.dumps(summary))  # as it reads back from the file: lists, not tuples
@@ -258,6 +265,7 @@ def mitsuba_scene_dict(scene: Scene, camera: Camera, mesh: Mesh | None = None, m
         "sampler": {"type": "independent"},
     }
     out = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth)}, "sensor": sensor}
+    emission = emission_table(scene, mesh).tolist()  # a flux made an exitance, as the solver has it
     for index, material in enumerate(scene.materials):
         mine = (mesh.material == index).numpy()
         if not mine.any():
@@ -265,8 +273,8 @@ def mitsuba_scene_dict(scene: Scene, camera: Camera, mesh: Mesh | None = None, m
         triangles = mesh.triangles.numpy()[mine]
         used, compact = np.unique(triangles, return_inverse=True)
         emitter = None
-        if any(e > 0 for e in material.emission):
-            emitter = {"type": "area", "radiance": _rgb([e / math.pi for e in material.emission])}
+        if any(e > 0 for e in emission[index]):
+            emitter = {"type": "area", "radiance": _rgb([e / math.pi for e in emission[index]])}
         bsdf = {"type": "diffuse", "reflectance": _rgb(material.reflectance)}
         out[f"material_{index}"] = _mitsuba_mesh(mi, material.name, vertices[used],
                                                  compact.reshape(-1, 3), bsdf, emitter)

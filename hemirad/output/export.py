@@ -1,11 +1,12 @@
 """Writing results: PNG images, OpenEXR (HDR) images, PLY meshes with vertex colours and
-radiosity, JSON stats.
+radiosity, JSON stats, CSV tables.
 
 Output-path problems (a missing permission, a directory where a file should go) are the
 user's to fix, so they surface as ``HemiradInputError`` with the path named.
 """
 from __future__ import annotations
 
+import csv
 import io
 import json
 import math
@@ -161,3 +162,12 @@ def write_stats(path, stats: dict) -> None:
     """
     text = json.dumps(_plain(stats, ""), indent=2, sort_keys=True, allow_nan=False)
     _write_bytes(path, (text + "\n").encode("utf-8"))
+
+
+def write_csv(path, header, rows) -> None:
+    """Write a CSV table (a header line, then one line per row of strings), atomically."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(header)
+    writer.writerows(rows)
+    _write_bytes(path, buffer.getvalue().encode("utf-8"))

@@ -24,10 +24,17 @@ The schema, all lengths in scene units::
              height: 512, exposure: auto, supersample: 3}
     solver: {max_shots: 500, unshot_fraction: 1.0e-3, resolution: 128, ambient: true}
     falsecolour: [room.floor]          # surfaces drawn as false-colour maps of the light on them
+    units: photometric                 # emission in lm/m^2 (default radiometric: W/m^2)
+    unit: m                            # the scene unit, for grid spacing and flux
+    sensors: [{position: [...], normal: [0, 1, 0], name: desk}]
+    grids: [{name: desk, work_plane: {height: 0.75, min: [x, z], max: [x, z]}, spacing: 0.2}]
+
+A material may give ``flux: <lumens>`` (and ``colour``) instead of ``emission``.
 
 This module reads the top level, materials and objects; the checks of single values are in
 ``keys.py``, the YAML dialect in ``yamlfile.py``, mesh objects and their files in
-``meshfile.py``, the materials of mesh files in ``filematerials.py``, and the camera, solver and refine blocks in ``options.py``.
+``meshfile.py``, the materials of mesh files in ``filematerials.py``, the camera, solver
+and refine blocks in ``options.py``, and units, sensors and grids in ``sensorblocks.py``.
 """
 from __future__ import annotations
 
@@ -36,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from hemirad.core.colour import REC709_LUMINANCE
 from hemirad.core.errors import SceneError
 from hemirad.scene.keys import Checker, closest, did_you_mean, join
 from hemirad.scene.filematerials import scene_materials
@@ -44,6 +52,7 @@ from hemirad.scene.meshing import box_face_corners, quad_triangles
 from hemirad.scene.model import (MAX_EMISSION, MIN_EMISSION, Box, FaceOverride, Material, MeshFile, Quad, Room, Scene,
                                  SceneObject)
 from hemirad.scene.options import MAX_TRIANGLES, read_camera, read_patch_size, read_refine, read_solver
+from hemirad.scene.sensorblocks import read_grids, read_length_unit, read_sensors, read_units
 from hemirad.scene.yamlfile import parse_yaml
 
 #: How far (a fraction of its size) a quad's corners may lie off their mean plane. The
@@ -57,11 +66,15 @@ __all__ = ["MAX_TRIANGLES", "SCENES_DIR", "bundled_scenes", "load_scene", "parse
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
-_TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver", "refine", "falsecolour")
+_TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver", "refine", "falsecolour", "units", "unit",
+             "sensors", "grids")
 
 #: The longest surface name ``falsecolour`` may hold: it becomes part of a file name.
 MAX_SURFACE_NAME = 200
-_MATERIAL_KEYS = ("reflectance", "emission")
+_MATERIAL_KEYS = ("reflectance", "emission", "flux", "colour")
+
+#: The luminous flux a material may give, in lumens (the brightest lamps give about 1e6).
+MAX_FLUX = 1e15
 _COMMON_KEYS = ("type", "name", "material", "element_size", "patch_size")
 _OBJECT_KEYS = {
     "room": _COMMON_KEYS + ("min", "max", "faces"),
@@ -219,11 +232,16 @@ class _Reader(Checker):
         solver = read_solver(self, top.get("solver", {}))
         refine = read_refine(self, top.get("refine", {}))
         surfaces = self.read_falsecolour(top.get("falsecolour", []))
+        units = read_units(self, top["units"]) if "units" in top else "radiometric"
+        unit = read_length_unit(self, top["unit"]) if "unit" in top else 1.0
+        sensors = read_sensors(self, top["sensors"]) if "sensors" in top else []
+        grids = read_grids(self, top["grids"]) if "grids" in top else []
         self.check_light(objects)
         self.check_object_sizes()
         self.check_triangle_budget()
         materials = list(self.materials.values()) + list(self.file_materials.values())
-        return Scene(materials, objects, camera, solver, refine, source, falsecolour=surfaces)
+        return Scene(materials, objects, camera, solver, refine, source, falsecolour=surfaces, sensors=sensors,
+                     grids=grids, units=units, metres_per_unit=unit)
 
     def read_falsecolour(self, v) -> list[str]:
         """A list of surface names; whether the scene has them is checked once it is meshed."""
@@ -253,7 +271,25 @@ class _Reader(Checker):
                                     f"three finite numbers >= 0 or one number (each 0 or from {MIN_EMISSION:g} "
                                     f"to {MAX_EMISSION:g}, so that radiosity fits the outputs' 32-bit floats)",
                                     lambda x: x == 0.0 or MIN_EMISSION <= x <= MAX_EMISSION)
-            self.materials[name] = Material(name, rho, emission)
+            material = Material(name, rho, emission)
+            if "flux" in spec:
+                if "emission" in spec:
+                    self.fail(f"{key}.flux", "either emission or flux, not both", spec["flux"],
+                              "Give the flux's colour as colour: [r, g, b].")
+                material.flux = self.bounded(spec["flux"], f"{key}.flux",
+                                             f"a luminous flux in lumens, > 0 and at most {MAX_FLUX:g}",
+                                             lambda x: 0 < x <= MAX_FLUX)
+            if "colour" in spec:
+                if "flux" not in spec:
+                    self.fail(f"{key}.colour", "a colour only beside flux (the colour of the light it gives)",
+                              spec["colour"], "An emission gives its colour itself.")
+                colour = self.rgb(spec["colour"], f"{key}.colour", "three numbers >= 0 or one number, "
+                                  "at most 1e6, not all 0 (only the colour counts, not the size)",
+                                  lambda x: 0 <= x <= 1e6)
+                if not sum(w * c for w, c in zip(REC709_LUMINANCE, colour)) > 0:
+                    self.fail(f"{key}.colour", "a colour with some luminance (not all zero)", list(colour))
+                material.colour = colour
+            self.materials[name] = material
 
     def read_objects(self, v) -> list[SceneObject]:
         expected = "a non-empty list of objects (room, box, quad, mesh)"
@@ -425,9 +461,9 @@ class _Reader(Checker):
         used |= {f.material for o in objects if isinstance(o, Room) for f in o.faces.values() if f.material}
         used |= {n for o in objects if isinstance(o, MeshFile) for n in o.file_materials.values()}
         materials = {**self.materials, **self.file_materials}
-        if any(max(materials[n].emission) > 0 for n in used):
+        if any(materials[n].emits for n in used):
             return
-        emitting = [n for n, m in materials.items() if max(m.emission) > 0]
+        emitting = [n for n, m in materials.items() if m.emits]
         hint = "The scene has no light: nothing would be lit. "
         if emitting:
             hint += f"The material(s) {', '.join(emitting)} emit but no object uses them."

@@ -1,8 +1,10 @@
-"""What a scene is: materials, objects, camera and solver options (data only).
+"""What a scene is: materials, objects, camera, solver options, sensors and calculation
+grids (data only).
 
 Reading these from a YAML file is ``loader.py``'s job; turning objects into triangles is
-``meshing.py``'s. Lengths are in scene units (any unit, used consistently); radiosity and
-emission are exitances (power per area, e.g. W/m^2); colours are linear RGB.
+``meshing.py``'s. Lengths are in scene units (``Scene.metres_per_unit`` metres each);
+radiosity and emission are exitances per square metre (W/m^2, or lm/m^2 in a photometric
+scene); colours are linear RGB.
 """
 from __future__ import annotations
 
@@ -29,11 +31,25 @@ CRITERION_NAMES = SHOT_CRITERION_NAMES + (ANSWER,)
 MIN_EMISSION, MAX_EMISSION = 1e-20, 1e20
 
 
+#: What a scene's ``units`` may be: what its emissions (and so its results) are measured in.
+UNITS = ("radiometric", "photometric")
+
+
 @dataclass
 class Material:
+    """A diffuse material. An emitter gives either ``emission`` (an exitance) or ``flux``
+    (the total luminous flux, in lumens, of every surface of the material together, turned
+    into an exitance once the scene is meshed; ``colour`` is then its chromaticity)."""
+
     name: str
     reflectance: tuple[float, float, float]  # diffuse, each in [0, 1)
     emission: tuple[float, float, float] = (0.0, 0.0, 0.0)  # exitance, >= 0
+    flux: float | None = None  # lumens, instead of emission
+    colour: tuple[float, float, float] = (1.0, 1.0, 1.0)  # the flux's colour (linear RGB)
+
+    @property
+    def emits(self) -> bool:
+        return max(self.emission) > 0 or (self.flux is not None and self.flux > 0)
 
 
 @dataclass
@@ -175,6 +191,36 @@ class RefineOptions:
 
 
 @dataclass
+class Sensor:
+    """A point where the irradiance on a small area facing ``normal`` is wanted."""
+
+    position: tuple[float, float, float]
+    normal: tuple[float, float, float]  # non-zero; need not be a unit vector
+    name: str
+
+
+@dataclass
+class Grid:
+    """A calculation grid: the rectangle ``origin``, ``origin + u``, ``origin + u + v``,
+    ``origin + v`` (``u`` and ``v`` perpendicular), its points at the centres of equal
+    cells, each measuring the irradiance on a small area facing ``normal``.
+
+    Attributes:
+        spacing: the largest distance between points (scene units); None: EN 12464-1's
+            from the longer side (``hemirad.lighting.grids.standard_spacing``).
+        key: where the grid is in the scene file (``grids[0]``), for messages.
+    """
+
+    name: str
+    origin: tuple[float, float, float]
+    u: tuple[float, float, float]
+    v: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    spacing: float | None = None
+    key: str = ""
+
+
+@dataclass
 class Scene:
     materials: list[Material]
     objects: list[SceneObject]
@@ -182,6 +228,10 @@ class Scene:
     solver: SolverOptions = field(default_factory=SolverOptions)
     refine: RefineOptions = field(default_factory=RefineOptions)
     source: Path | None = None  # the file it was read from
+    sensors: list[Sensor] = field(default_factory=list)
+    grids: list[Grid] = field(default_factory=list)
+    units: str = "radiometric"  # one of UNITS
+    metres_per_unit: float = 1.0  # the scene's length unit in metres (grid spacing, flux to exitance)
     # Keys whose value a command-line option set, e.g. {"solver.resolution": "--resolution"}:
     # an error about such a value names the option, not the scene file.
     command_line: dict[str, str] = field(default_factory=dict)

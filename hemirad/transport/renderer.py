@@ -11,15 +11,19 @@ from hemirad.transport.hemicube import Hemicube, tangent_frame
 from hemirad.transport.view import HemicubeView
 
 
-def clip_planes(mesh: Mesh) -> tuple[float, float]:
+def clip_planes(mesh: Mesh, points: torch.Tensor | None = None) -> tuple[float, float]:
     """The (near, far) distances of a hemicube in ``mesh``'s scene; near is also how far the
-    eye sits off the shooter's plane.
+    eye sits off the shooter's plane. ``points`` (N, 3): eyes that may lie outside the
+    mesh's bounds (sensors), whose hemicubes must reach across the mesh too.
 
     The eye sits just off the shooter so that its own plane (and coplanar neighbours) falls
     below every face's field of view; depth is linear (``hemicube.py``), so a near plane
     this close loses no precision.
     """
     lo, hi = mesh.bounding_box()
+    if points is not None and len(points):
+        points = torch.as_tensor(points, dtype=lo.dtype, device=lo.device)
+        lo, hi = torch.minimum(lo, points.min(dim=0).values), torch.maximum(hi, points.max(dim=0).values)
     diagonal = float((hi - lo).norm())
     return 1e-6 * diagonal, 1.01 * diagonal
 
@@ -36,16 +40,18 @@ class HemicubeRenderer:
             OpenGL context must be on the GPU too (``GLContext.get(gpu=True)``).
         profiler: accumulates ``raster``, ``readback`` and ``form_factors`` (decoding and
             summing) seconds; a new one when None.
+        clip: the (near, far) planes, for eyes outside the mesh's bounds; default
+            ``clip_planes(mesh)``.
     Attributes:
         renders: hemicubes rendered so far.
     """
 
     def __init__(self, mesh: Mesh, resolution: int, cull: bool = True, device: torch.device | str = "cpu",
-                 profiler: Profiler | None = None):
+                 profiler: Profiler | None = None, clip: tuple[float, float] | None = None):
         self.device = torch.device(device)
         self.profiler = profiler if profiler is not None else Profiler(("raster", "readback", "form_factors"))
         self.weights = delta_form_factors(resolution, self.device)  # (3R, R)
-        self.near, self.far = clip_planes(mesh)
+        self.near, self.far = clip_planes(mesh) if clip is None else clip
         self.renders = 0  # hemicubes rendered
         self.hemicube = Hemicube(resolution, cull, gpu=self.device.type == "cuda", profiler=self.profiler)
         self.set_geometry(mesh)
