@@ -30,7 +30,6 @@ from hemirad.adaptive.answer import RoundReport, estimated_relative_error, refin
 from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver
 from hemirad.core.atomic import remove_stale_temporaries
-from hemirad.core.colour import LUMENS_PER_WATT
 from hemirad.core.device import select_device
 from hemirad.core.errors import HemiradInputError, SceneError, bounded_repr
 from hemirad.geometry.mesh import Mesh
@@ -64,10 +63,15 @@ def falsecolour_file(surface: str) -> str:
     return "falsecolour_" + re.sub(r"[^A-Za-z0-9._-]", "_", surface) + ".png"
 
 
+def grid_picture_file(name: str) -> str:
+    """The false-colour picture of the grid ``name``."""
+    return f"grid_{name}.png"
+
+
 def output_names(scene: Scene) -> list[str]:
     """Every file name a run of ``scene`` writes into its output folder (not the checkpoint)."""
     return [*OUTPUT_FILES.values(), *dict.fromkeys(falsecolour_file(name) for name in scene.falsecolour),
-            *survey.output_names(scene)]
+            *survey.output_names(scene), *(grid_picture_file(g.name) for g in scene.grids)]
 
 
 @dataclass
@@ -165,12 +169,19 @@ class Result:
         view = render_view(self.mesh, ones, self.scene.camera, triangles=display.conforming_triangles(self.mesh))
         return view[:, :, 0]
 
-    def luminance_image(self, factor: float = LUMENS_PER_WATT, unit: str = LUMINANCE_UNIT,
+    @property
+    def lumens_per_unit(self) -> float:
+        """Lumens per unit of the scene's power: 683 lm/W in a radiometric scene, 1 in a
+        photometric one (``lighting.photometry``)."""
+        return photometry.lumens_per_unit(self.scene.units)
+
+    def luminance_image(self, factor: float | None = None, unit: str = LUMINANCE_UNIT,
                         linear: np.ndarray | None = None) -> np.ndarray:
         """(h, w, 3) uint8: the camera view's luminance in false colour with a colour bar (a
-        log scale; pixels that see no surface grey). ``factor`` and ``unit``: 683 lm/W and
-        cd/m^2 for a scene in W/m^2; 1 and the scene's unit for one already photometric.
-        ``linear``: ``linear_image()``, to reuse one already rendered."""
+        log scale; pixels that see no surface grey). ``factor``: lumens per unit of the
+        scene's power (default ``lumens_per_unit``). ``linear``: ``linear_image()``, to
+        reuse one already rendered."""
+        factor = self.lumens_per_unit if factor is None else factor
         linear = self.linear_image() if linear is None else linear
         return falsecolour.luminance_picture(linear, self.coverage_image(), unit, "Luminance", factor)
 
@@ -179,15 +190,25 @@ class Result:
         the display radiosity (so the ambient term is in it); NaN where rho is 0."""
         return falsecolour.element_irradiance(self.display_radiosity, self.emission, self.reflectance)
 
-    def surface_falsecolour(self, surface: str, factor: float = LUMENS_PER_WATT, unit: str = ILLUMINANCE_UNIT,
+    def surface_falsecolour(self, surface: str, factor: float | None = None, unit: str = ILLUMINANCE_UNIT,
                             size: int = 512, levels=None) -> np.ndarray:
         """(h, w, 3) uint8: the light falling on one surface (a name, as for ``mesh_image``),
-        seen straight on, as a false-colour map of ``factor`` times the luminance of its
-        irradiance, with a colour bar in ``unit`` and iso-lines (``levels``; None: nice
-        numbers over its range). Defaults: illuminance in lux for a scene in W/m^2."""
+        seen straight on, as a false-colour map of ``factor`` (default ``lumens_per_unit``)
+        times the luminance of its irradiance, with a colour bar in ``unit`` and iso-lines
+        (``levels``; None: nice numbers over its range). Default: illuminance in lux."""
+        factor = self.lumens_per_unit if factor is None else factor
         index = pick_surface(self.mesh, surface)
         title = f"Light falling on {self.mesh.surface_names[index]}"
         return falsecolour.surface_picture(self.mesh, self.irradiance(), index, unit, title, factor, size, levels)
+
+    def grid_picture(self, grid, levels=None) -> np.ndarray:
+        """(h, w, 3) uint8: a calculation grid's illuminance (``self.grids[name]``) over its
+        rectangle in false colour, a colour bar in lux, iso-lines (``levels``; None: nice
+        numbers), its Em, Emin and U0 in the title."""
+        g, s = grid.grid, grid.statistics
+        u0 = f", U0 {s['U0']:.2f}" if s["U0"] is not None else ""
+        title = f"Grid {g.name}: Em {s['Em']:.4g} lx, Emin {s['Emin']:.4g} lx{u0}"
+        return falsecolour.grid_picture(grid.lux.numpy(), g.origin, g.u, g.v, ILLUMINANCE_UNIT, title, levels)
 
     def mesh_image(self, surface: str | None = None, size: int = 512) -> np.ndarray:
         """(H, W, 3) uint8: one surface seen straight on, its elements shaded and outlined
@@ -214,8 +235,10 @@ class Result:
         tables = {}
         if self.sensors is not None:
             tables["sensors"] = (folder / "sensors.csv", self.sensors.table())
+        grid_pictures = {}
         for name, grid in self.grids.items():
             tables[f"grid {name}"] = (folder / grid.file_name, grid.table())
+            grid_pictures[f"grid picture {name}"] = (folder / grid_picture_file(name), grid)
         vertex = self.vertex_radiosity()
         check_finite(self, vertex)  # before anything is written
         start = time.perf_counter()
@@ -226,6 +249,9 @@ class Result:
         export.write_png(paths["mesh view"], self.mesh_image())
         for name in surfaces:
             export.write_png(paths[f"falsecolour {name}"], self.surface_falsecolour(name))
+        for kind, (path, grid) in grid_pictures.items():
+            export.write_png(path, self.grid_picture(grid))
+            paths[kind] = path
         rendered = time.perf_counter()
         export.write_ply(paths["mesh"], self.mesh, vertex, display.to_srgb8(vertex.numpy(), self.exposure()))
         self.write_glb(paths["glTF"], vertex)

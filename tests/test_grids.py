@@ -3,6 +3,8 @@ hand, the scene keys, and the grid files and table of a run."""
 import csv
 import json
 import math
+
+import numpy as np
 from pathlib import Path
 
 import pytest
@@ -197,3 +199,18 @@ def test_a_run_writes_the_grid_files_stats_and_table(tmp_path, capsys):
              csv.DictReader(open(out / "grid_floor.csv", newline=""))}
     assert floor[(1, 1)] == 0 and min(v for k, v in floor.items() if k != (1, 1)) > 0
     assert stats["grids"]["floor"]["points_seeing_nothing"] == 1 and "1 of the 49 points" in err
+    # and each grid's false-colour picture
+    from PIL import Image
+    for name in ("floor", "wall"):
+        picture = np.asarray(Image.open(out / f"grid_{name}.png").convert("RGB"))
+        assert picture.shape[0] > 100 and picture.shape[1] > 100
+
+
+def test_a_grid_picture_is_drawn_in_scene_coordinates_where_its_edges_run_along_axes():
+    from hemirad.output.falsecolour import grid_extent
+
+    # a work plane: u along x, v along z
+    assert grid_extent([1.0, 0.75, 2.0], [3.0, 0, 0], [0, 0, 1.5]) == ((1.0, 4.0, 2.0, 3.5), "x", "z")
+    # a slanted rectangle: distances along its edges
+    extent, xlabel, ylabel = grid_extent([0, 0, 0], [3.0, 4.0, 0], [0, 0, 2.0])
+    assert extent == (0.0, 5.0, 0.0, 2.0) and (xlabel, ylabel) == ("along u", "z")

@@ -298,3 +298,32 @@ def luminance_picture(linear: np.ndarray, coverage: np.ndarray | None, unit: str
     values = luminance_values(linear, coverage, factor)[::-1]  # row 0 at the bottom
     height, width = values.shape
     return render(plane_figure(values, (0.0, float(width), 0.0, float(height)), unit, title, log=True, axes=False))
+
+
+# ----------------------------------------------------------------------------------------
+# calculation grids
+
+
+def grid_extent(origin, u, v) -> tuple[tuple[float, float, float, float], str, str]:
+    """The rectangle ``origin`` + [0,1] ``u`` + [0,1] ``v`` (3-vectors) as a picture's extent
+    and axis labels: in scene coordinates where u and v run along axes (a work plane: x and
+    z), else distances along u and v from the origin."""
+    origin, u, v = (np.asarray(x, dtype=np.float64) for x in (origin, u, v))
+    names = "xyz"
+    extent, labels = [], []
+    for edge, fallback in ((u, "along u"), (v, "along v")):
+        axis = int(np.argmax(np.abs(edge)))
+        if np.count_nonzero(edge) == 1:
+            extent += [origin[axis], origin[axis] + edge[axis]]
+            labels.append(names[axis])
+        else:
+            extent += [0.0, float(np.linalg.norm(edge))]
+            labels.append(fallback)
+    return tuple(extent), labels[0], labels[1]
+
+
+def grid_picture(values, origin, u, v, unit: str, title: str, levels=None) -> np.ndarray:
+    """(h, w, 3) uint8: a calculation grid's values (rows along v, columns along u) over its
+    rectangle, with a colour bar in ``unit`` and iso-lines (``plane_picture``)."""
+    extent, xlabel, ylabel = grid_extent(origin, u, v)
+    return plane_picture(np.asarray(values, dtype=np.float64), extent, unit, title, levels, xlabel, ylabel)
