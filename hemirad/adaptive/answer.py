@@ -5,11 +5,10 @@ Per-shot criteria (``criteria.py``) judge one shot at a time against a fixed thr
 they never see the smooth variation over large elements that dominates an image's error,
 and a threshold cannot be tuned to a mesh size. Here the judge is the solution itself:
 
-1. **Estimate.** An element's error is how far its constant radiosity B_j lies from what the
-   displayed, Gouraud-shaded mesh shows over it: the mean of its corners' vertex values
-   (area-weighted means of the elements around each vertex, as ``output.display`` shades).
-   That difference vanishes where radiosity varies linearly (the shading follows it) and
-   grows with curvature and at shadow edges, where the picture is wrong.
+1. **Estimate.** An element's error is how far the displayed, Gouraud-shaded mesh (its
+   corners' vertex values, area-weighted means of the elements around each vertex, as
+   ``output.display`` shades) lies from a linear model of the radiosity fitted to the
+   element and its neighbours (``element_errors``).
 2. **Split** the elements of the largest squared error times area (their share of the
    image's squared error) first, as many as the round's element budget allows.
 3. **Regather.** A split element's children inherit its radiosity; each child then gets
@@ -38,23 +37,53 @@ if TYPE_CHECKING:
     from hemirad.transport.solver import ProgressiveSolver
 
 
+def vertex_neighbours(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
+    """(P,) and (P,): the pairs (i, j), i != j, of elements that share a vertex (so the same
+    surface: vertices are not shared across surfaces)."""
+    T = mesh.num_elements
+    corner_element = torch.arange(T, device=mesh.triangles.device).repeat_interleave(3)
+    incidence = torch.sparse_coo_tensor(torch.stack([corner_element, mesh.triangles.reshape(-1)]),
+                                        torch.ones(3 * T, dtype=torch.float64, device=corner_element.device),
+                                        (T, len(mesh.vertices))).coalesce()
+    pairs = torch.sparse.mm(incidence, incidence.t()).coalesce().indices()
+    i, j = pairs
+    return i[i != j], j[i != j]
+
+
 def element_errors(mesh: Mesh, radiosity: torch.Tensor) -> torch.Tensor:
-    """(T,) each element's estimated error: |luminance of B_j - the mean of the vertex values
-    at its corners|, the vertex values area-weighted means of the elements around each vertex.
+    """(T,) each element's estimated error: the RMS, over its corners, of how far the
+    displayed (Gouraud) vertex values lie from a linear model of the radiosity around it.
+
+    The model is the element's value with the gradient that best fits (least squares,
+    weighted by area) its vertex-sharing neighbours' values at their centroids. Where the
+    radiosity varies linearly inside a surface the shading follows it and the estimate is 0;
+    it grows with curvature and at shadow edges, and at a surface's border, where a vertex
+    can only average the elements beside it and so misses the slope by about half an
+    element (a first-order error the refinement then shrinks).
 
     Args:
-        mesh: the elements; vertices are shared within a surface only, so the mean does not
-            blend across a room's corners.
-        radiosity: (T, 3) the radiosity shown.
+        mesh: the elements; radiosity: (T, 3) the radiosity shown.
     """
     value = luminance(radiosity)  # (T,)
     corner_vertex = mesh.triangles.reshape(-1)
     weight = mesh.areas.repeat_interleave(3)
     sums = value.new_zeros(len(mesh.vertices)).index_add_(0, corner_vertex, weight * value.repeat_interleave(3))
     weights = value.new_zeros(len(mesh.vertices)).index_add_(0, corner_vertex, weight)
-    vertex = sums / weights.clamp(min=1e-300)
-    shown = vertex[mesh.triangles].mean(dim=1)  # (T,)
-    return (value - shown).abs()
+    shown = (sums / weights.clamp(min=1e-300))[mesh.triangles]  # (T, 3) the vertex values at each corner
+    i, j = vertex_neighbours(mesh)
+    centroids, normals = mesh.centroids, mesh.normals
+    d = centroids.index_select(0, j) - centroids.index_select(0, i)  # (P, 3)
+    w = mesh.areas.index_select(0, j)
+    moments = torch.zeros(mesh.num_elements, 3, 3, dtype=value.dtype, device=value.device).index_add_(
+        0, i, w[:, None, None] * d[:, :, None] * d[:, None, :])
+    # no slope along the normal: the neighbours span the plane only
+    scale = mesh.areas * moments.diagonal(dim1=1, dim2=2).sum(1).clamp(min=1e-300) / mesh.areas.clamp(min=1e-300)
+    moments += scale[:, None, None] * normals[:, :, None] * normals[:, None, :]
+    rhs = torch.zeros(mesh.num_elements, 3, dtype=value.dtype, device=value.device).index_add_(
+        0, i, (w * (value.index_select(0, j) - value.index_select(0, i)))[:, None] * d)
+    slope = torch.linalg.lstsq(moments, rhs[:, :, None]).solution[:, :, 0]  # (T, 3)
+    model = value[:, None] + ((mesh.corners - centroids[:, None, :]) * slope[:, None, :]).sum(-1)  # (T, 3)
+    return (model - shown).pow(2).mean(1).sqrt()
 
 
 def estimated_relative_error(mesh: Mesh, radiosity: torch.Tensor, errors: torch.Tensor | None = None) -> float:
