@@ -23,6 +23,7 @@ and a threshold cannot be tuned to a mesh size. Here the judge is the solution i
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
@@ -45,7 +46,9 @@ def vertex_neighbours(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
     incidence = torch.sparse_coo_tensor(torch.stack([corner_element, mesh.triangles.reshape(-1)]),
                                         torch.ones(3 * T, dtype=torch.float64, device=corner_element.device),
                                         (T, len(mesh.vertices))).coalesce()
-    pairs = torch.sparse.mm(incidence, incidence.t()).coalesce().indices()
+    with warnings.catch_warnings():  # torch's notes on sparse support, not about these tensors
+        warnings.simplefilter("ignore", UserWarning)
+        pairs = torch.sparse.mm(incidence, incidence.t()).coalesce().indices()
     i, j = pairs
     return i[i != j], j[i != j]
 

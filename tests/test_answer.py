@@ -1,0 +1,163 @@
+"""Refinement judged on the answer (``hemirad.adaptive.answer``): the error estimate, the
+regather that gives split elements' children their own light, conservation through late
+splits, and the run's options and statistics."""
+import json
+
+import numpy as np
+import torch
+
+import hemirad
+from hemirad.adaptive.answer import element_errors, estimated_relative_error, refine_mesh, select_by_error
+from hemirad.adaptive.refine import Refiner
+from hemirad.cli import main
+from hemirad.geometry.patches import build_patches
+from hemirad.scene.model import RefineOptions
+from hemirad.transport.shooters import PatchShooters
+from hemirad.transport.solver import ProgressiveSolver
+
+from patches import closed_box, quad, quads_mesh
+
+
+def grid(size=1.0, element_size=0.125):
+    """One square floor (y = 0, facing up) meshed into right triangles."""
+    return quads_mesh([quad([0, 0, 0], [0, 0, size], [size, 0, 0])], [element_size])
+
+
+def field(mesh, f):
+    """(T, 3) grey radiosity: f at each element's centroid, the element's mean for a linear f."""
+    values = torch.stack([torch.as_tensor(f(p), dtype=torch.float64) for p in mesh.centroids])
+    return values[:, None].expand(-1, 3).contiguous()
+
+
+def test_the_estimate_vanishes_for_a_constant_and_inside_a_linear_field_and_finds_a_step_and_a_border():
+    mesh = grid()
+    assert float(element_errors(mesh, field(mesh, lambda p: torch.tensor(2.0))).max()) < 1e-12
+    linear = element_errors(mesh, field(mesh, lambda p: 1.0 + 3.0 * p[0] + 2.0 * p[2]))
+    inside = ((mesh.corners[:, :, [0, 2]] > 0.13) & (mesh.corners[:, :, [0, 2]] < 0.87)).all(dim=(1, 2))
+    assert float(linear[inside].max()) < 1e-9
+    # a vertex on the border averages only the elements beside it, missing half an element's slope
+    assert float(linear[~inside].max()) > 0.1
+    fine = grid(element_size=0.0625)
+    step = element_errors(fine, field(fine, lambda p: 1.0 if p[0] < 0.5 else 2.0))
+    x = fine.corners[:, :, 0]
+    near = ((x - 0.5).abs() < 0.13).any(dim=1)  # within two elements of the step
+    far = ~near & ((x > 0.07) & (x < 0.93)).all(dim=1)
+    assert int(far.sum()) > 50 and float(step[far].max()) < 1e-9 and float(step[near].max()) > 0.1
+
+
+def test_the_worst_elements_are_chosen_by_error_squared_times_area():
+    errors = torch.tensor([0.1, 0.3, 0.2, 0.3, 0.0], dtype=torch.float64)
+    areas = torch.tensor([1.0, 1.0, 4.0, 1.0, 9.0], dtype=torch.float64)
+    everything = torch.ones(5, dtype=torch.bool)
+    # scores 0.01, 0.09, 0.16, 0.09, 0: the big element first, then the tie in index order
+    assert select_by_error(errors, areas, everything, 2).nonzero().reshape(-1).tolist() == [1, 2]
+    assert select_by_error(errors, areas, everything, 10).sum() == 4  # never one without error
+    not_2 = everything.clone()
+    not_2[2] = False
+    assert select_by_error(errors, areas, not_2, 1).nonzero().reshape(-1).tolist() == [1]
+
+
+def lamp_solver(mesh, resolution=256):
+    """The lamp (surface 0, E = 10) as one patch, each floor element (surface 1, rho 0.5) its own."""
+    T = mesh.num_elements
+    rho = torch.zeros(T, 3, dtype=torch.float64)
+    rho[mesh.surface == 1] = 0.5
+    E = torch.zeros(T, 3, dtype=torch.float64)
+    E[mesh.surface == 0] = 10.0
+    tree = build_patches(mesh, np.full(T, 1.0))
+    return ProgressiveSolver(mesh, rho, E, resolution, patches=PatchShooters(tree, torch.device("cpu")),
+                             near_reach=0.0)
+
+
+def test_split_receivers_get_the_light_a_fresh_solve_gives_them_and_keep_their_parents_power():
+    # A 0.2 m square lamp 0.5 m over a floor strip, nothing else: after the lamp's shot the
+    # floor is split twice; each child must then hold what the lamp's shot gives it on the
+    # refined mesh (a fresh solve of that mesh), not its parent's average, and the floor's
+    # power must stay what it received.
+    lamp = quad([0.4, 0.5, -0.1], [0.2, 0, 0], [0, 0, 0.2])  # faces down
+    floor = quad([0.0, 0.0, -0.1], [0, 0, 0.2], [1.0, 0, 0])  # faces up
+    solver = lamp_solver(quads_mesh([lamp, floor], [0.1, 0.1]))
+    try:
+        solver.run(1, 0.0)
+        before = (solver.state.radiosity * solver.areas[:, None])[solver.mesh.surface == 1].sum(0)
+        refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer", max_depth=3), solver.emission)
+        for _ in range(2):  # two levels of late splits
+            refine_mesh(solver, refiner, solver.mesh.surface == 1)
+        mesh, state = solver.mesh, solver.state
+        floor = mesh.surface == 1
+        assert int(floor.sum()) == 16 * 40  # 10 x 2 cells, 2 triangles each, split twice
+        after = (state.radiosity * solver.areas[:, None])[floor].sum(0)
+        torch.testing.assert_close(after, before, rtol=1e-12, atol=0)
+        fresh = lamp_solver(mesh)
+        try:
+            fresh.run(1, 0.0)
+            torch.testing.assert_close(state.radiosity[floor], fresh.state.radiosity[floor], rtol=1e-9, atol=0)
+        finally:
+            fresh.close()
+        # and that is not the parents' values: the children of one parent differ
+        assert len(torch.unique(state.radiosity[floor, 0])) > 8 * 40
+    finally:
+        solver.close()
+
+
+def test_power_balances_to_1e9_through_rounds_of_late_splits():
+    # a closed box of random reflectances, one glowing face, two rounds of splits after
+    # converging: received + unshot + escaped = emitted, and nothing escapes a closed box
+    from hemirad.adaptive.answer import refine_by_answer
+
+    mesh = closed_box(element_size=0.25)
+    T = mesh.num_elements
+    rho = torch.rand(T, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64) * 0.6 + 0.2
+    E = torch.zeros(T, 3, dtype=torch.float64)
+    E[:32] = torch.tensor([9.0, 5.0, 2.0], dtype=torch.float64)
+    tree = build_patches(mesh, np.full(T, 0.5))
+    solver = ProgressiveSolver(mesh, rho, E, 32, patches=PatchShooters(tree, torch.device("cpu")), overshoot=True,
+                               near_reach=3.0)
+    refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
+    try:
+        rounds = refine_by_answer(solver, refiner, 4 * T, 0.0, 2, lambda: solver.run(10_000, 1e-3))
+        s = solver.state
+        balance = solver.emitted_power - s.absorbed - s.escaped - (s.unshot * solver.areas[:, None]).sum(0)
+        assert float((balance.abs() / solver.emitted_power).max()) < 1e-9
+        assert len(rounds) == 3 and rounds[-1].elements > T
+        assert float(s.escaped.abs().max()) < 1e-6 * float(solver.emitted_power.max())
+    finally:
+        solver.close()
+
+
+def test_a_run_refines_by_the_answer_and_reports_its_rounds_and_estimate(tmp_path):
+    out = tmp_path / "out"
+    assert main(["cornell_box", "-q", "-o", str(out), "--refine", "pattern2", "--criterion", "answer",
+                 "--rounds", "1", "--unshot-fraction", "0.01", "--resolution", "32"]) == 0
+    stats = json.loads((out / "stats.json").read_text())
+    rounds = stats["refine"]["rounds"]
+    assert [r["round"] for r in rounds] == [0, 1] and rounds[0]["split"] > 0
+    assert stats["elements"] == rounds[1]["elements"] == stats["initial_elements"] + rounds[0]["split"]
+    assert stats["refine"]["splits"] > 0 and 0 < stats["estimated_error"] < 1
+    emitted, absorbed, escaped, unshot = (np.array(stats[k]) for k in
+                                          ("emitted_power", "absorbed_power", "escaped_power", "unshot_power"))
+    np.testing.assert_allclose(absorbed + escaped + unshot, emitted, rtol=1e-9)
+
+
+def test_every_run_reports_its_estimated_error():
+    result = hemirad.solve(_small_cornell(0.05))
+    mesh = result.mesh
+    assert result.stats["estimated_error"] == estimated_relative_error(mesh, result.radiosity)
+    assert result.stats["refine"]["rounds"] is None
+
+
+def _small_cornell(unshot):
+    scene = hemirad.load_scene("cornell_box")
+    scene.solver.unshot_fraction, scene.solver.resolution = unshot, 32
+    return scene
+
+
+def test_the_answer_needs_patches_and_no_checkpoints(tmp_path, capsys):
+    from test_cli import one_paragraph_error
+
+    err = one_paragraph_error(capsys, ["cornell_box", "-o", str(tmp_path / "a"), "--refine", "pattern2",
+                                       "--criterion", "answer", "--patch-size", "none"])
+    assert "refine.criterion" in err and "patch" in err
+    err = one_paragraph_error(capsys, ["cornell_box", "-o", str(tmp_path / "b"), "--refine", "pattern2",
+                                       "--criterion", "answer", "--checkpoint-every", "10"])
+    assert "--checkpoint-every" in err
