@@ -43,11 +43,12 @@ def vertex_neighbours(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
     surface: vertices are not shared across surfaces)."""
     T = mesh.num_elements
     corner_element = torch.arange(T, device=mesh.triangles.device).repeat_interleave(3)
-    incidence = torch.sparse_coo_tensor(torch.stack([corner_element, mesh.triangles.reshape(-1)]),
-                                        torch.ones(3 * T, dtype=torch.float64, device=corner_element.device),
-                                        (T, len(mesh.vertices))).coalesce()
-    with warnings.catch_warnings():  # torch's notes on sparse support, not about these tensors
+    with warnings.catch_warnings():  # torch's notes on its sparse support, not about these tensors
         warnings.simplefilter("ignore", UserWarning)
+        incidence = torch.sparse_coo_tensor(
+            torch.stack([corner_element, mesh.triangles.reshape(-1)]),
+            torch.ones(3 * T, dtype=torch.float64, device=corner_element.device), (T, len(mesh.vertices)),
+            check_invariants=False).coalesce()
         pairs = torch.sparse.mm(incidence, incidence.t()).coalesce().indices()
     i, j = pairs
     return i[i != j], j[i != j]
