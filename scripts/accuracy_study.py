@@ -37,10 +37,13 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 import hemirad
+from hemirad.adaptive.answer import estimated_relative_error, refine_by_answer
+from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver
 from hemirad.evaluation import metrics, reference
 from hemirad.pipeline import Result
 from hemirad.scene.meshing import build_mesh
+from hemirad.scene.model import ANSWER
 from hemirad.transport.gl import GLContext
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -206,6 +209,95 @@ def run_study(scenes, methods, settings: SolverSettings, element_scale: float, v
                     f"relMSE {row['relative_mse']:.5f} MRE {row['mean_relative_error']:.4f} "
                     f"SSIM {row['ssim']:.4f} bias {row['bias']:+.4f}", flush=True)
     return rows
+
+
+# ----------------------------------------------------------------------------------------
+# converged, in the default configuration: uniform meshes against refinement judged on the answer
+
+#: Element-size factors of the uniform runs (about 1/4, 1/2, 1, 2 and 4 times the shipped elements).
+CONVERGED_UNIFORM = (2.0, 1.41, 1.0, 0.71, 0.5)
+#: The answer's runs start from the shipped mesh with element sizes times this.
+CONVERGED_ANSWER_START = (2.0, 1.0)
+CONVERGED_ROUNDS = 4
+CONVERGED_UNSHOT = 1e-3
+
+
+def _scored(name, label, value, scene, solver, seconds, comparison) -> dict:
+    s = solver.state
+    result = Result(scene, solver.mesh.to("cpu"), s.radiosity.cpu(), s.unshot.cpu(), solver.reflectance.cpu(),
+                    solver.emission.cpu(), {})
+    return {"scene": name, "method": label, "value": value, "elements": solver.mesh.num_elements,
+            "shots": s.shots, "unshot_fraction": solver.unshot_fraction, "seconds": seconds,
+            "estimated_error": estimated_relative_error(result.mesh, result.radiosity),
+            **comparison.scores(result)}
+
+
+def converged_study(scenes, log=print) -> list[dict]:
+    """Per scene, converged to ``CONVERGED_UNSHOT`` with patches (the default): uniform meshes
+    of several sizes, and refinement judged on the answer from two starting sizes, scored
+    after every round (its seconds counted from the start, meshing included)."""
+    rows = []
+    for name in scenes:
+        shipped = hemirad.load_scene(name)
+        comparison = Comparison.load(name, shipped)
+        for factor in CONVERGED_UNIFORM:
+            scene = shipped.with_element_sizes_scaled(factor)
+            scene.solver.unshot_fraction = CONVERGED_UNSHOT
+            start = time.perf_counter()
+            solver = make_solver(scene)
+            try:
+                solver.run(scene.solver.max_shots, CONVERGED_UNSHOT)
+            finally:
+                solver.close()
+            rows.append(_scored(name, "uniform", factor, scene, solver, time.perf_counter() - start, comparison))
+            log(_converged_line(rows[-1]), flush=True)
+        for factor in CONVERGED_ANSWER_START:
+            scene = shipped.with_element_sizes_scaled(factor)
+            scene.solver.unshot_fraction = CONVERGED_UNSHOT
+            scene.refine.pattern, scene.refine.criterion = "pattern2", ANSWER
+            start = time.perf_counter()
+            solver = make_solver(scene)
+            refiner = Refiner(scene.refine, solver.emission)
+            label = f"answer from x{factor:g}"
+
+            def shoot_on():
+                solver.run(scene.solver.max_shots, CONVERGED_UNSHOT)
+                rows.append(_scored(name, label, factor, scene, solver, time.perf_counter() - start, comparison))
+                log(_converged_line(rows[-1]), flush=True)
+
+            try:
+                refine_by_answer(solver, refiner, scene.refine.max_elements, 0.0, CONVERGED_ROUNDS, shoot_on)
+            finally:
+                solver.close()
+    return rows
+
+
+def _converged_line(r: dict) -> str:
+    return (f"{r['scene']:12s} {r['method']:18s} {r['value']:<5g} {r['elements']:6d} elements {r['shots']:6d} shots "
+            f"{r['seconds']:6.1f} s  relMSE {r['relative_mse']:.5f} (RMS {math.sqrt(r['relative_mse']):.4f}, "
+            f"estimated {r['estimated_error']:.4f}) SSIM {r['ssim']:.4f}")
+
+
+def write_converged_table(path: Path, rows: list[dict]) -> None:
+    machine = f"{platform.machine()}, {platform.system()}, 1 torch thread, {GLContext.renderer_name()}"
+    lines = ["# Converged: uniform meshes against refinement judged on the answer", "",
+             f"Made by `python scripts/accuracy_study.py --converged` on {machine}. The default configuration "
+             f"(patches, overshooting, hemicube 128), every run converged to {CONVERGED_UNSHOT:g} unshot power; "
+             "`uniform x f`: the shipped element sizes times f, no refinement; `answer from x f`: that mesh, "
+             "then rounds of `refine.criterion: answer` (pattern 2, each round at most doubling the elements), "
+             "a row after each round with the seconds from the start. relMSE as in the study above; "
+             "RMS = sqrt(relMSE); estimated: the run's own estimate of that RMS (`stats.json`'s "
+             "`estimated_error`).", ""]
+    for name in dict.fromkeys(r["scene"] for r in rows):
+        lines += [f"## {name}", "", "| run | elements | shots | seconds | relMSE | RMS | estimated | SSIM |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in (r for r in rows if r["scene"] == name):
+            label = f"uniform x{r['value']:g}" if r["method"] == "uniform" else r["method"]
+            lines.append(f"| {label} | {r['elements']} | {r['shots']} | {r['seconds']:.1f} | "
+                         f"{r['relative_mse']:.5f} | {math.sqrt(r['relative_mse']):.4f} | "
+                         f"{r['estimated_error']:.4f} | {r['ssim']:.4f} |")
+        lines.append("")
+    path.write_text("\n".join(lines))
 
 
 # ----------------------------------------------------------------------------------------
@@ -411,6 +503,9 @@ def main(argv=None) -> int:
     parser.add_argument("--save-rows", type=Path, default=None, help="also write every run's numbers as JSON here")
     parser.add_argument("--plot-only", type=Path, default=None,
                         help="redraw the table and figure from --save-rows JSON instead of solving")
+    parser.add_argument("--converged", action="store_true",
+                        help="instead: converged runs in the default configuration, uniform meshes against "
+                             "refinement judged on the answer (accuracy_converged.md and .png)")
     parser.add_argument("--search", action="store_true",
                         help="find the thresholds of THRESHOLDS anew (refinement phase only) and print them")
     args = parser.parse_args(argv)
@@ -431,6 +526,15 @@ def main(argv=None) -> int:
         for key, values in table.items():
             print(f"    {key!r}: {tuple(values)!r},")
         print("}")
+        return 0
+
+    if args.converged:
+        out = args.out or ROOT / "figures"
+        rows = json.loads(args.plot_only.read_text()) if args.plot_only else converged_study(args.scenes)
+        if args.save_rows:
+            args.save_rows.write_text(json.dumps(rows, indent=1) + "\n")
+        write_converged_table(out / "accuracy_converged.md", rows)
+        write_figure(out / "accuracy_converged.png", rows)
         return 0
 
     settings, values = SolverSettings(), sweep
