@@ -13,7 +13,7 @@ from hemirad.core.device import DEVICES, DEVICE_NAMES, is_device_name
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.patterns import PATTERN_CHOICES, describe_patterns
 from hemirad.scene.loader import MAX_TRIANGLES, bundled_scenes, load_scene
-from hemirad.scene.model import CRITERION_NAMES, RefineOptions
+from hemirad.scene.model import CRITERION_NAMES, SMALL_RECEIVER_CHOICES, RefineOptions
 
 
 def _number(text: str, kind=float):
@@ -109,6 +109,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--patch-size", type=_patch_size, metavar="auto|none|SIZE",
                         help="patches that shoot for their elements: auto (about 2 x 2 elements), a side "
                              "length, or none: every element shoots, as in the paper (solver.patch_size)")
+    parser.add_argument("--small-receivers", choices=SMALL_RECEIVER_CHOICES,
+                        help="form factors of receivers that cover few hemicube pixels: closed_form, "
+                             "Lambert's closed form times the visibility the hemicube finds, or pixels, "
+                             "their pixels' sum as in the paper (solver.small_receivers)")
     parser.add_argument("--device", type=_device,
                         help="where the solve runs (solver.device): " +
                              "; ".join(f"{name}, {meaning}" for name, meaning in DEVICES.items()))
@@ -182,7 +186,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     scene = load_scene(args.scene)
     solver_options = {"max_shots": ("--shots", args.shots), "unshot_fraction": ("--unshot-fraction",
                       args.unshot_fraction), "resolution": ("--resolution", args.resolution),
-                      "device": ("--device", args.device), "patch_size": ("--patch-size", args.patch_size)}
+                      "device": ("--device", args.device), "patch_size": ("--patch-size", args.patch_size),
+                      "small_receivers": ("--small-receivers", args.small_receivers)}
     refine_options = {"pattern": ("--refine", args.refine), "criterion": ("--criterion", args.criterion),
                       "threshold": ("--threshold", args.threshold),
                       "relative": ("--relative" if args.relative else "--absolute", args.relative),

@@ -18,6 +18,10 @@ from hemirad.geometry.patterns import NO_REFINEMENT
 #: may be. Each is defined in ``hemirad.adaptive.criteria.CRITERIA``, whose keys are checked
 #: against these (the loader, a layer below, reads the names from here).
 CRITERION_NAMES = ("gradient", "receiver", "partial_visibility", "neighbor_difference", "uniform")
+#: How receivers that cover few hemicube pixels get their form factors: what a scene's
+#: ``solver.small_receivers`` (and ``--small-receivers``) may be: their pixels' sum, or the
+#: closed form times the visibility the hemicube finds (``transport.smallreceivers``).
+SMALL_RECEIVER_CHOICES = ("pixels", "closed_form")
 
 
 @dataclass
@@ -122,10 +126,15 @@ class SolverOptions:
     overshoot: bool = True  # with patches: shoot rho times the ambient more (Feda & Purgathofer)
     shooter_split: float | None = None  # with patches: split a shooter where eq. 7 exceeds this share
     cache_mb: float = 256.0  # memory for form-factor rows kept between a shooter's shots
+    # How receivers covering few hemicube pixels get their form factors: one of
+    # SMALL_RECEIVER_CHOICES (hemirad.transport.smallreceivers).
+    small_receivers: str = "closed_form"
 
     def paper(self) -> None:
-        """Shoot as the paper does: every element, from its centroid, no overshooting."""
+        """Shoot as the paper does: every element, from its centroid, no overshooting, each
+        receiver's form factor its pixels' sum."""
         self.patch_size, self.overshoot, self.shooter_split = None, False, None
+        self.small_receivers = "pixels"
 
 
 @dataclass

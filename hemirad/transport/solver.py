@@ -143,6 +143,9 @@ class ProgressiveSolver:
         device: where the tensors live and the torch work runs (``device.select_device``);
             on CUDA the hemicubes are drawn by the GPU's OpenGL context. The inputs may be
             anywhere; ``state_dict`` is always on the CPU.
+        small_receivers: how receivers that cover few hemicube pixels get their form factors
+            (``scene.model.SMALL_RECEIVER_CHOICES``): pixels, or closed_form (``smallreceivers``). Every
+            row a shot uses or keeps is the renderer's, so the kept rows are the same.
     Attributes:
         mesh, reflectance, emission, areas: current, as refinement changes them (on ``device``).
         profiler: the seconds spent per phase (``PHASES``), the refiner's included.
@@ -151,7 +154,8 @@ class ProgressiveSolver:
     def __init__(self, mesh: Mesh, reflectance: torch.Tensor, emission: torch.Tensor, resolution: int,
                  refiner: ShotRefiner | None = None, cull: bool = True, cache_bytes: int = DEFAULT_CACHE_BYTES,
                  patches: PatchShooters | None = None, overshoot: bool = False, near_reach: float = 0.0,
-                 refine_shots: int | None = None, device: torch.device | str = "cpu"):
+                 refine_shots: int | None = None, device: torch.device | str = "cpu",
+                 small_receivers: str = "pixels"):
         self.device = torch.device(device)
         mesh = mesh.to(self.device)
         reflectance, emission = reflectance.to(self.device), emission.to(self.device)
@@ -160,7 +164,7 @@ class ProgressiveSolver:
         self._adopt(reflectance, emission, SolverState(radiosity=emission.clone(), unshot=emission.clone()))
         self.emitted_power = (emission * self.areas[:, None]).sum(0)  # (3,)
         self.profiler = Profiler(PHASES)
-        self.renderer = HemicubeRenderer(mesh, resolution, cull, self.device, self.profiler)
+        self.renderer = HemicubeRenderer(mesh, resolution, cull, self.device, self.profiler, small_receivers)
         self.refiner = refiner
         self.refine_shots = refine_shots
         self.rows = FormFactorRows(cache_bytes)
@@ -193,6 +197,11 @@ class ProgressiveSolver:
             return self.renderer.render(shooter)
         tree = self.patches.tree
         return self.renderer.render_at(*(x[shooter].numpy() for x in (tree.centroid, tree.normal, tree.tangent)))
+
+    def carried_over(self, view: HemicubeView) -> HemicubeView:
+        """A view carried across a split (``adaptive.relabel``), its form factors made as a
+        render of the current mesh makes them (``HemicubeRenderer.with_small_receivers``)."""
+        return self.renderer.with_small_receivers(view)
 
     def shooter_elements(self, shooter: int) -> int | torch.Tensor:
         """The elements ``shooter`` is: the element itself, or (K,) a node's elements."""
