@@ -40,8 +40,8 @@ from hemirad.transport.view import HemicubeView
 #: sub-pixel offsets): a pixel sum's worst error is 100% below one pixel, 45% at 4,
 #: 20% at 16 and 9% at 64.
 MAX_PIXELS = 16.0
-#: Visibility samples per receiver: at most SAMPLE_LEVEL^2, about two per pixel at ``MAX_PIXELS``.
-SAMPLE_LEVEL = 6
+#: Visibility samples per receiver: about one a pixel of its footprint, at most SAMPLE_LEVEL^2.
+SAMPLE_LEVEL = 4
 # A point is hidden only by what its ray crosses this fraction of its length short of it,
 # and what lies this fraction of the eye's height off the receiver's plane (rounding; the
 # receiver's coplanar neighbours are not occluders).
@@ -62,20 +62,11 @@ def sample_barycentrics(level: int) -> torch.Tensor:
     return torch.cat([ab, 1.0 - ab.sum(1, keepdim=True)], dim=1)
 
 
-@cached_per_device
-def _sample_table(max_level: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every level's ``sample_barycentrics`` one after another, levels 1 to ``max_level``:
-    (sum of level^2, 3) float64, and (max_level + 1,) int64 where each level's run starts."""
-    runs = [sample_barycentrics(level) for level in range(1, max_level + 1)]
-    start = torch.tensor([0, 0] + [level * level for level in range(1, max_level)], dtype=torch.int64).cumsum(0)
-    return torch.cat(runs), start
-
-
 def sample_levels(footprint: torch.Tensor, max_level: int = SAMPLE_LEVEL) -> torch.Tensor:
     """(n,) int64 the level of each receiver's samples for its (n,) ``footprint`` in pixels:
-    the least with level^2 >= 2 footprint (two samples a pixel), from 1 to ``max_level``.
-    More would only sample the same pixels again."""
-    return torch.ceil(torch.sqrt(2.0 * footprint)).long().clamp(1, max_level)
+    the least with level^2 >= footprint (a sample a pixel: what a pixel sees is one answer
+    for all the points in it), from 1 to ``max_level``."""
+    return torch.ceil(torch.sqrt(footprint)).long().clamp(1, max_level)
 
 
 @cached_per_device
@@ -139,14 +130,13 @@ def visible_fractions(view: HemicubeView, rows: torch.Tensor, corners: torch.Ten
         levels: (n,) int64 each one's samples: the level^2 points of ``sample_barycentrics``.
     """
     n, device = len(rows), corners.device
-    table, start = _sample_table(int(levels.max()), device)
-    counts = levels * levels
-    position = torch.repeat_interleave(torch.arange(n, device=device), counts)  # (N,) the receiver of each sample
-    first = torch.cumsum(counts, 0) - counts
-    within = torch.arange(len(position), device=device) - first.index_select(0, position)
-    bary = table.index_select(0, start.index_select(0, levels).index_select(0, position) + within)  # (N, 3)
-    at = corners.index_select(0, position)  # (N, 3, 3)
-    points = bary[:, 0:1] * at[:, 0] + bary[:, 1:2] * at[:, 1] + bary[:, 2:3] * at[:, 2]  # (N, 3)
+    points, position = [], []  # per level: the samples (M, 3) and the receiver (M,) of each
+    for level in torch.unique(levels).tolist():
+        group = flatnonzero(levels == level)
+        bary = sample_barycentrics(level, device)  # (S, 3)
+        points.append(torch.einsum("sk,nkc->nsc", bary, corners.index_select(0, group)).reshape(-1, 3))
+        position.append(group.repeat_interleave(len(bary)))
+    points, position = torch.cat(points), torch.cat(position)  # (N, 3), (N,)
     owner = rows.index_select(0, position)
     ray = points - view.eye  # (N, 3) from the eye to the point
     local = ray @ view.frame.T
@@ -159,10 +149,10 @@ def visible_fractions(view: HemicubeView, rows: torch.Tensor, corners: torch.Ten
     if len(other):
         k = seen.index_select(0, other)
         toward = row_sums(view.normals.index_select(0, k) * ray.index_select(0, other))  # n_k . ray
-        d_k = view.distance_of(k)  # the ray meets k's plane at d_k / toward of its length
+        d_k = view.distance.index_select(0, k)  # the ray meets k's plane at d_k / toward of its length
         crosses = (d_k * toward > 0) & (d_k.abs() < (1.0 - _TOLERANCE) * toward.abs())
         j = owner.index_select(0, other)
-        d_j = view.distance_of(j)  # < 0: the eye is in front of j
+        d_j = view.distance.index_select(0, j)  # < 0: the eye is in front of j
         seen_at = view.hits(pixels.index_select(0, other)) - view.eye[:, None]  # (3, M) what the pixel sees
         in_front = (view.normals_of(j) * seen_at).sum(0) - d_j > _TOLERANCE * d_j.abs()
         hidden = other.index_select(0, flatnonzero(crosses & in_front))
