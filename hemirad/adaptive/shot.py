@@ -1,7 +1,7 @@
 """One refining shot: judge the receivers, split, redo on the children, commit a real render.
 
 The refiner (``refine.Refiner``) decides; this module runs the passes of a shot through the
-solver's small interface (``render``, ``carried_over``, ``adopt_split``, ``mesh``, ``reflectance``, ``areas``,
+solver's small interface (``render``, ``adopt_split``, ``mesh``, ``reflectance``, ``areas``,
 ``profiler``), so that the solver knows nothing of criteria, gradients or relabelling.
 """
 from __future__ import annotations
@@ -58,7 +58,7 @@ def refining_shot(refiner: "Refiner", solver: "ProgressiveSolver", shooter: int,
             candidates = refiner.splittable(mesh, solver.shooter_elements(shooter), new)
             gain = inherit(gain, parent).index_copy_(0, new, luminance_per_form_factor(solver, shot_power, new))
             if refiner.relabel and not solver.eye_moves(shooter, split):
-                view = solver.carried_over(relabel_view(view, parent, split, mesh))
+                view = relabel_view(view, parent, split, mesh)
                 continue
         view = solver.render(shooter)
     if view.relabelled_pixels is not None:  # commit what a real render of the final mesh sees

@@ -1,17 +1,13 @@
 """Hemicubes of a mesh's elements, rendered and turned into ``HemicubeView`` records."""
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import torch
 
 from hemirad.core.timing import Profiler
 from hemirad.geometry.mesh import Mesh
-from hemirad.scene.model import SMALL_RECEIVER_CHOICES
 from hemirad.transport.formfactor import decode_items, delta_form_factors, element_form_factors
 from hemirad.transport.hemicube import Hemicube, tangent_frame
-from hemirad.transport.smallreceivers import small_receiver_form_factors
 from hemirad.transport.view import HemicubeView
 
 
@@ -40,20 +36,12 @@ class HemicubeRenderer:
             OpenGL context must be on the GPU too (``GLContext.get(gpu=True)``).
         profiler: accumulates ``raster``, ``readback`` and ``form_factors`` (decoding and
             summing) seconds; a new one when None.
-        small_receivers: how the receivers that cover few pixels get their form factors
-            (``solver.small_receivers``): pixels, the sum of their pixels' delta form factors,
-            or closed_form, the closed form times the visibility the hemicube finds
-            (``smallreceivers``).
     Attributes:
         renders: hemicubes rendered so far.
     """
 
     def __init__(self, mesh: Mesh, resolution: int, cull: bool = True, device: torch.device | str = "cpu",
-                 profiler: Profiler | None = None, small_receivers: str = "pixels"):
-        if small_receivers not in SMALL_RECEIVER_CHOICES:
-            raise ValueError(f"small_receivers must be one of {', '.join(SMALL_RECEIVER_CHOICES)}, "
-                             f"not {small_receivers!r}")
-        self.small_receivers = small_receivers
+                 profiler: Profiler | None = None):
         self.device = torch.device(device)
         self.profiler = profiler if profiler is not None else Profiler(("raster", "readback", "form_factors"))
         self.weights = delta_form_factors(resolution, self.device)  # (3R, R)
@@ -90,27 +78,9 @@ class HemicubeRenderer:
             element, front = (x.to(self.device).reshape(-1) for x in decode_items(items))
             weight = self.weights.reshape(-1)
             F = element_form_factors(element, front, weight, mesh.num_elements)
-            view = HemicubeView(element, front, weight, torch.from_numpy(eye).to(self.device),
-                                torch.from_numpy(np.ascontiguousarray(frame, dtype=np.float64)).to(self.device),
-                                mesh.normals, mesh.centroids, F, self.hemicube.resolution)
-            return self._small_receivers(view)
-
-    def with_small_receivers(self, view: HemicubeView) -> HemicubeView:
-        """``view`` of the current mesh, its pixels' form factors summed afresh and, with
-        ``small_receivers`` closed_form, the small receivers' corrected: for a view carried
-        across a split (``adaptive.relabel``), whose new elements have only pixel sums. With
-        pixels, the view itself."""
-        if self.small_receivers == "pixels":
-            return view
-        with self.profiler.phase("form_factors"):
-            F = element_form_factors(view.element, view.front, view.weight, self.mesh.num_elements)
-            return self._small_receivers(replace(view, form_factors=F))
-
-    def _small_receivers(self, view: HemicubeView) -> HemicubeView:
-        """``view`` with the small receivers' form factors as ``small_receivers`` asks."""
-        if self.small_receivers == "pixels":
-            return view
-        return replace(view, form_factors=small_receiver_form_factors(view, self.mesh.corners, self.mesh.areas))
+        return HemicubeView(element, front, weight, torch.from_numpy(eye).to(self.device),
+                            torch.from_numpy(np.ascontiguousarray(frame, dtype=np.float64)).to(self.device),
+                            mesh.normals, mesh.centroids, F, self.hemicube.resolution)
 
     def from_element(self, shooter: int) -> torch.Tensor:
         """(T,) F_sj from element ``shooter`` to every element j."""

@@ -17,11 +17,13 @@ from hemirad.core.runtime import deterministic, keep_freed_memory, torch_threads
 from hemirad.core.timing import Profiler
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import GrowingRows
+from hemirad.scene.model import SMALL_RECEIVER_CHOICES
 from hemirad.transport.gl import GLContext
 from hemirad.transport.nearfield import NearReceivers, incident_power, near_receivers
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
 from hemirad.transport.shooters import PatchShooters
+from hemirad.transport.smallreceivers import small_receiver_form_factors
 from hemirad.transport.view import HemicubeView
 
 # The phases a solve's time is reported in (``ProgressiveSolver.timings``, stats.json).
@@ -144,8 +146,9 @@ class ProgressiveSolver:
             on CUDA the hemicubes are drawn by the GPU's OpenGL context. The inputs may be
             anywhere; ``state_dict`` is always on the CPU.
         small_receivers: how receivers that cover few hemicube pixels get their form factors
-            (``scene.model.SMALL_RECEIVER_CHOICES``): pixels, or closed_form (``smallreceivers``). Every
-            row a shot uses or keeps is the renderer's, so the kept rows are the same.
+            (``scene.model.SMALL_RECEIVER_CHOICES``): pixels, or closed_form (``smallreceivers``),
+            applied to the row a shot uses and keeps (``shot_row``); the views the refiner and
+            the shooter tests read keep their pixel sums.
     Attributes:
         mesh, reflectance, emission, areas: current, as refinement changes them (on ``device``).
         profiler: the seconds spent per phase (``PHASES``), the refiner's included.
@@ -164,7 +167,11 @@ class ProgressiveSolver:
         self._adopt(reflectance, emission, SolverState(radiosity=emission.clone(), unshot=emission.clone()))
         self.emitted_power = (emission * self.areas[:, None]).sum(0)  # (3,)
         self.profiler = Profiler(PHASES)
-        self.renderer = HemicubeRenderer(mesh, resolution, cull, self.device, self.profiler, small_receivers)
+        self.renderer = HemicubeRenderer(mesh, resolution, cull, self.device, self.profiler)
+        if small_receivers not in SMALL_RECEIVER_CHOICES:
+            raise ValueError(f"small_receivers must be one of {', '.join(SMALL_RECEIVER_CHOICES)}, "
+                             f"not {small_receivers!r}")
+        self.small_receivers = small_receivers
         self.refiner = refiner
         self.refine_shots = refine_shots
         self.rows = FormFactorRows(cache_bytes)
@@ -197,11 +204,6 @@ class ProgressiveSolver:
             return self.renderer.render(shooter)
         tree = self.patches.tree
         return self.renderer.render_at(*(x[shooter].numpy() for x in (tree.centroid, tree.normal, tree.tangent)))
-
-    def carried_over(self, view: HemicubeView) -> HemicubeView:
-        """A view carried across a split (``adaptive.relabel``), its form factors made as a
-        render of the current mesh makes them (``HemicubeRenderer.with_small_receivers``)."""
-        return self.renderer.with_small_receivers(view)
 
     def shooter_elements(self, shooter: int) -> int | torch.Tensor:
         """The elements ``shooter`` is: the element itself, or (K,) a node's elements."""
@@ -312,17 +314,29 @@ class ProgressiveSolver:
         refiner = self.active_refiner
         if refiner is None:
             return self.form_factors_of(shooter)
-        return refiner.shoot(self, shooter, shot_power).form_factors
+        return self.shot_row(refiner.shoot(self, shooter, shot_power))
 
     def form_factors_of(self, shooter: int) -> torch.Tensor:
         """(T,) F_sj from ``shooter`` on the current mesh: its kept row, else rendered (and kept)."""
         F = self.rows.get(shooter, self.mesh.num_elements)
-        return self.render_and_keep(shooter).form_factors if F is None else F
+        if F is None:
+            F = self.shot_row(self.render(shooter))
+            self.rows.put(shooter, F)
+        return F
+
+    def shot_row(self, view: HemicubeView) -> torch.Tensor:
+        """(T,) the F_sj a shot from ``view`` (of the current mesh) hands out: its pixel sums, or
+        with ``small_receivers`` closed_form those of the receivers covering few pixels
+        replaced (``smallreceivers.small_receiver_form_factors``)."""
+        if self.small_receivers == "pixels":
+            return view.form_factors
+        with self.profiler.phase("form_factors"):
+            return small_receiver_form_factors(view, self.mesh.corners, self.mesh.areas)
 
     def render_and_keep(self, shooter: int) -> HemicubeView:
-        """``render(shooter)``, its form-factor row kept for the shooter's next shot."""
+        """``render(shooter)``, its ``shot_row`` kept for the shooter's shots."""
         view = self.render(shooter)
-        self.rows.put(shooter, view.form_factors)
+        self.rows.put(shooter, self.shot_row(view))
         return view
 
     def _commit(self, shooter: int, shot_power: torch.Tensor, F: torch.Tensor) -> None:
