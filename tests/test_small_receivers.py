@@ -306,3 +306,13 @@ def test_the_option_is_read_checked_and_the_paper_keeps_pixels(tmp_path):
             hemirad.load_scene(path)
         message = str(error.value)
         assert "solver.small_receivers" in message and "pixels, closed_form" in message and path.name in message
+
+
+def test_the_command_line_option_sets_it_and_refuses_other_values(capsys):
+    from hemirad.cli import build_parser
+    parser = build_parser()
+    assert parser.parse_args(["floating", "--small-receivers", "pixels"]).small_receivers == "pixels"
+    assert parser.parse_args(["floating"]).small_receivers is None  # the scene's own, or the default
+    with pytest.raises(SystemExit) as exit_code:
+        parser.parse_args(["floating", "--small-receivers", "exact"])
+    assert exit_code.value.code == 2 and "closed_form" in capsys.readouterr().err

@@ -8,16 +8,19 @@ pixels anything within about a pixel of its true value. Refined elements in a pe
 that small, and the grain shows.
 
 For such receivers (an unoccluded footprint estimated below ``MAX_PIXELS`` pixels) the
-factor is instead Lambert's closed-form point-to-triangle factor from the eye, times the
-fraction of the triangle the eye sees, found with the hemicube as a shadow map: points
-spread evenly over the triangle (the centroids of its ``SAMPLE_LEVEL``^2 congruent
-sub-triangles) are projected into the atlas, and a point is hidden when the element its
-pixel sees, another one, is crossed by the point's own ray before the point (the ray meets
-that element's plane first) and lies, where the pixel sees it, on the eye's side of the
-receiver's plane. Both conditions are needed: the first alone would hide points beside a
-convex edge (a box's top seen past its side face), the second alone points beside a concave
-one (a floor seen past the wall it meets). An unoccluded receiver so gets its closed form
-exactly; a partly hidden one a visibility resolved to the shadow map's pixels.
+factor is instead that of the part of the triangle the eye sees, found with the hemicube as a
+shadow map: the centroids of its level^2 equal sub-triangles (about one a pixel) are
+projected into the atlas, and a point is hidden when the element its pixel sees, another
+one, is crossed by the point's own ray before the point (the ray meets that element's
+plane first) and lies, where the pixel sees it, on the eye's side of the receiver's plane.
+Both conditions are needed: the first alone would hide points beside a convex edge (a box's
+underside seen past its side face), the second alone points beside a concave one (a
+ceiling seen past the wall it meets). The visible points' kernel cos_s cos_j / (pi r^2),
+each standing for its sub-triangle, sums to the factor; near the eye, where that sum is too
+coarse (``NEAR``), Lambert's closed form times the visible share of the sum is used. An
+unoccluded receiver so gets its exact factor (to about 1e-3) wherever it lies under the
+pixels; a partly hidden one a visibility resolved to the shadow map's pixels, as the
+pixel sum resolves it, but without the luck of where the centres fall on the receiver.
 
 The row keeps the hemicube's total: it is scaled by the hemicube's sum over the new one, so
 a closed scene's row still sums to 1 and power is conserved exactly. The scale differs from
@@ -38,15 +41,15 @@ from hemirad.transport.hemicube import FACES, face_viewports
 from hemirad.transport.view import HemicubeView
 
 #: The receivers whose unoccluded footprint on the hemicube is estimated below this many
-#: pixels get the closed form. Measured (``tests/test_small_receivers.py``'s geometry at
-#: sub-pixel offsets): a pixel sum's worst error is 100% below one pixel, 45% at 4,
-#: 20% at 16 and 9% at 64.
+#: pixels get their factor from samples. Measured (a right triangle, legs along the pixel
+#: rows, over 7 x 7 offsets within a pixel): a pixel sum's worst error is 106% at half a
+#: pixel, 55% at 2, 38% at 4.5, 29% at 8, 21% at 18 and 64, 10% at 128.
 MAX_PIXELS = 16.0
 #: Visibility samples per receiver: about one a pixel of its footprint, at most SAMPLE_LEVEL^2.
 SAMPLE_LEVEL = 4
 #: A receiver whose sub-triangles are longer than this fraction of its distance from the eye
-#: gets the closed form times its visible share rather than the sampled sum (whose relative
-#: error is about the square of that ratio: under 0.3% beyond it).
+#: gets the closed form times its visible share rather than the sampled sum (the sum's
+#: relative error is about the square of that ratio: under 0.3% where it is used).
 NEAR = 0.05
 # A point is hidden only by what its ray crosses this fraction of its length short of it,
 # and what lies this fraction of the eye's height off the receiver's plane (rounding; the
