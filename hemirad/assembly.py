@@ -53,7 +53,8 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
     return ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner, cull=cull,
                              cache_bytes=int(options.cache_mb * (1 << 20)), patches=patches,
                              overshoot=options.overshoot, near_reach=NEAR_REACH,
-                             refine_shots=scene.refine.shots if refiner is not None else None, device=device)
+                             refine_shots=scene.refine.shots if refiner is not None else None, device=device,
+                             small_receivers=options.small_receivers)
 
 
 def patch_sizes(scene: Scene, mesh: Mesh) -> np.ndarray:

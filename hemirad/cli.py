@@ -13,7 +13,7 @@ from hemirad.core.device import DEVICES, DEVICE_NAMES, is_device_name
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.patterns import PATTERN_CHOICES, describe_patterns
 from hemirad.scene.loader import MAX_SURFACE_NAME, MAX_TRIANGLES, bundled_scenes, load_scene
-from hemirad.scene.model import CRITERION_NAMES, RefineOptions
+from hemirad.scene.model import CRITERION_NAMES, SMALL_RECEIVER_CHOICES, RefineOptions
 from hemirad.scene.sensorfile import read_sensor_file
 
 
@@ -120,6 +120,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--sensors", type=Path, metavar="FILE",
                         help="also read the irradiance and illuminance at the sensors of FILE, a CSV of lines "
                              "x,y,z,nx,ny,nz[,name] (a header line and # comments allowed); writes OUT/sensors.csv")
+    parser.add_argument("--small-receivers", choices=SMALL_RECEIVER_CHOICES,
+                        help="form factors of receivers that cover few hemicube pixels: closed_form, "
+                             "Lambert's closed form times the visibility the hemicube finds, or pixels, "
+                             "their pixels' sum as in the paper (solver.small_receivers)")
     parser.add_argument("--device", type=_device,
                         help="where the solve runs (solver.device): " +
                              "; ".join(f"{name}, {meaning}" for name, meaning in DEVICES.items()))
@@ -203,7 +207,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     scene = load_scene(args.scene)
     solver_options = {"max_shots": ("--shots", args.shots), "unshot_fraction": ("--unshot-fraction",
                       args.unshot_fraction), "resolution": ("--resolution", args.resolution),
-                      "device": ("--device", args.device), "patch_size": ("--patch-size", args.patch_size)}
+                      "device": ("--device", args.device), "patch_size": ("--patch-size", args.patch_size),
+                      "small_receivers": ("--small-receivers", args.small_receivers)}
     refine_options = {"pattern": ("--refine", args.refine), "criterion": ("--criterion", args.criterion),
                       "threshold": ("--threshold", args.threshold),
                       "relative": ("--relative" if args.relative else "--absolute", args.relative),

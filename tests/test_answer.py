@@ -128,7 +128,7 @@ def test_power_balances_to_1e9_through_rounds_of_late_splits():
 def test_a_run_refines_by_the_answer_and_reports_its_rounds_and_estimate(tmp_path):
     out = tmp_path / "out"
     assert main(["cornell_box", "-q", "-o", str(out), "--refine", "pattern2", "--criterion", "answer",
-                 "--rounds", "1", "--unshot-fraction", "0.01", "--resolution", "32"]) == 0
+                 "--rounds", "1", "--tolerance", "1e-6", "--unshot-fraction", "0.01", "--resolution", "32"]) == 0
     stats = json.loads((out / "stats.json").read_text())
     rounds = stats["refine"]["rounds"]
     assert [r["round"] for r in rounds] == [0, 1] and rounds[0]["split"] > 0

@@ -33,6 +33,10 @@ MIN_EMISSION, MAX_EMISSION = 1e-20, 1e20
 
 #: What a scene's ``units`` may be: what its emissions (and so its results) are measured in.
 UNITS = ("radiometric", "photometric")
+#: How receivers that cover few hemicube pixels get their form factors: what a scene's
+#: ``solver.small_receivers`` (and ``--small-receivers``) may be: their pixels' sum, or the
+#: closed form times the visibility the hemicube finds (``transport.smallreceivers``).
+SMALL_RECEIVER_CHOICES = ("pixels", "closed_form")
 
 
 @dataclass
@@ -154,10 +158,15 @@ class SolverOptions:
     overshoot: bool = True  # with patches: shoot rho times the ambient more (Feda & Purgathofer)
     shooter_split: float | None = None  # with patches: split a shooter where eq. 7 exceeds this share
     cache_mb: float = 256.0  # memory for form-factor rows kept between a shooter's shots
+    # How receivers covering few hemicube pixels get their form factors: one of
+    # SMALL_RECEIVER_CHOICES (hemirad.transport.smallreceivers).
+    small_receivers: str = "closed_form"
 
     def paper(self) -> None:
-        """Shoot as the paper does: every element, from its centroid, no overshooting."""
+        """Shoot as the paper does: every element, from its centroid, no overshooting, each
+        receiver's form factor its pixels' sum."""
         self.patch_size, self.overshoot, self.shooter_split = None, False, None
+        self.small_receivers = "pixels"
 
 
 @dataclass

@@ -6,14 +6,14 @@ import numpy as np
 from hemirad.core.device import DEVICE_NAMES, is_device_name
 from hemirad.geometry.patterns import PATTERN_CHOICES
 from hemirad.scene.keys import Checker
-from hemirad.scene.model import CRITERION_NAMES, Camera, RefineOptions, SolverOptions
+from hemirad.scene.model import CRITERION_NAMES, SMALL_RECEIVER_CHOICES, Camera, RefineOptions, SolverOptions
 
 #: Refuse scenes whose estimated initial triangle count exceeds this.
 MAX_TRIANGLES = 5_000_000
 
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot",
-                "shooter_split", "cache_mb")
+                "shooter_split", "cache_mb", "small_receivers")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
                 "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds")
 
@@ -78,6 +78,8 @@ def read_solver(check: Checker, v) -> SolverOptions:
     if "cache_mb" in m:
         opts.cache_mb = check.bounded(m["cache_mb"], "solver.cache_mb", "a number of megabytes >= 0",
                                       lambda x: 0 <= x <= 1e7)
+    if "small_receivers" in m:
+        opts.small_receivers = check.choice(m["small_receivers"], "solver.small_receivers", SMALL_RECEIVER_CHOICES)
     return opts
 
 

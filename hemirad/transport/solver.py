@@ -17,11 +17,13 @@ from hemirad.core.runtime import deterministic, keep_freed_memory, torch_threads
 from hemirad.core.timing import Profiler
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import GrowingRows
+from hemirad.scene.model import SMALL_RECEIVER_CHOICES
 from hemirad.transport.gl import GLContext
 from hemirad.transport.nearfield import NearReceivers, incident_power, near_receivers
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
 from hemirad.transport.shooters import PatchShooters
+from hemirad.transport.smallreceivers import small_receiver_form_factors
 from hemirad.transport.view import HemicubeView
 
 # The phases a solve's time is reported in (``ProgressiveSolver.timings``, stats.json).
@@ -143,6 +145,10 @@ class ProgressiveSolver:
         device: where the tensors live and the torch work runs (``device.select_device``);
             on CUDA the hemicubes are drawn by the GPU's OpenGL context. The inputs may be
             anywhere; ``state_dict`` is always on the CPU.
+        small_receivers: how receivers that cover few hemicube pixels get their form factors
+            (``scene.model.SMALL_RECEIVER_CHOICES``): pixels, or closed_form (``smallreceivers``),
+            applied to the row a shot uses and keeps (``shot_row``); the views the refiner and
+            the shooter tests read keep their pixel sums.
     Attributes:
         mesh, reflectance, emission, areas: current, as refinement changes them (on ``device``).
         profiler: the seconds spent per phase (``PHASES``), the refiner's included.
@@ -151,7 +157,8 @@ class ProgressiveSolver:
     def __init__(self, mesh: Mesh, reflectance: torch.Tensor, emission: torch.Tensor, resolution: int,
                  refiner: ShotRefiner | None = None, cull: bool = True, cache_bytes: int = DEFAULT_CACHE_BYTES,
                  patches: PatchShooters | None = None, overshoot: bool = False, near_reach: float = 0.0,
-                 refine_shots: int | None = None, device: torch.device | str = "cpu"):
+                 refine_shots: int | None = None, device: torch.device | str = "cpu",
+                 small_receivers: str = "pixels"):
         self.device = torch.device(device)
         mesh = mesh.to(self.device)
         reflectance, emission = reflectance.to(self.device), emission.to(self.device)
@@ -161,6 +168,10 @@ class ProgressiveSolver:
         self.emitted_power = (emission * self.areas[:, None]).sum(0)  # (3,)
         self.profiler = Profiler(PHASES)
         self.renderer = HemicubeRenderer(mesh, resolution, cull, self.device, self.profiler)
+        if small_receivers not in SMALL_RECEIVER_CHOICES:
+            raise ValueError(f"small_receivers must be one of {', '.join(SMALL_RECEIVER_CHOICES)}, "
+                             f"not {small_receivers!r}")
+        self.small_receivers = small_receivers
         self.refiner = refiner
         self.refine_shots = refine_shots
         self.rows = FormFactorRows(cache_bytes)
@@ -304,17 +315,29 @@ class ProgressiveSolver:
         refiner = self.active_refiner
         if refiner is None:
             return self.form_factors_of(shooter)
-        return refiner.shoot(self, shooter, shot_power).form_factors
+        return self.shot_row(refiner.shoot(self, shooter, shot_power))
 
     def form_factors_of(self, shooter: int) -> torch.Tensor:
         """(T,) F_sj from ``shooter`` on the current mesh: its kept row, else rendered (and kept)."""
         F = self.rows.get(shooter, self.mesh.num_elements)
-        return self.render_and_keep(shooter).form_factors if F is None else F
+        if F is None:
+            F = self.shot_row(self.render(shooter))
+            self.rows.put(shooter, F)
+        return F
+
+    def shot_row(self, view: HemicubeView) -> torch.Tensor:
+        """(T,) the F_sj a shot from ``view`` (of the current mesh) hands out: its pixel sums, or
+        with ``small_receivers`` closed_form those of the receivers covering few pixels
+        replaced (``smallreceivers.small_receiver_form_factors``)."""
+        if self.small_receivers == "pixels":
+            return view.form_factors
+        with self.profiler.phase("form_factors"):
+            return small_receiver_form_factors(view, self.mesh.corners, self.mesh.areas)
 
     def render_and_keep(self, shooter: int) -> HemicubeView:
-        """``render(shooter)``, its form-factor row kept for the shooter's next shot."""
+        """``render(shooter)``, its ``shot_row`` kept for the shooter's shots."""
         view = self.render(shooter)
-        self.rows.put(shooter, view.form_factors)
+        self.rows.put(shooter, self.shot_row(view))
         return view
 
     def _commit(self, shooter: int, shot_power: torch.Tensor, F: torch.Tensor) -> None:
