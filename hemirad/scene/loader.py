@@ -21,6 +21,7 @@ The schema, all lengths in scene units::
     camera: {position: [...], look_at: [...], up: [0, 1, 0], fov: 40, width: 512,
              height: 512, exposure: auto, supersample: 3}
     solver: {max_shots: 500, unshot_fraction: 1.0e-3, resolution: 128, ambient: true}
+    meshing: {contacts: true}          # mesh touched surfaces conforming to what touches them
 
 This module reads the top level, materials and objects; the checks of single values are in
 ``keys.py``, the YAML dialect in ``yamlfile.py``, mesh objects and their files in
@@ -38,7 +39,7 @@ from hemirad.scene.keys import Checker, closest, did_you_mean, join
 from hemirad.scene.meshfile import read_mesh_object
 from hemirad.scene.meshing import box_face_corners, quad_triangles
 from hemirad.scene.model import Box, FaceOverride, Material, MeshFile, Quad, Room, Scene, SceneObject
-from hemirad.scene.options import MAX_TRIANGLES, read_camera, read_patch_size, read_refine, read_solver
+from hemirad.scene.options import MAX_TRIANGLES, read_camera, read_meshing, read_patch_size, read_refine, read_solver
 from hemirad.scene.yamlfile import parse_yaml
 
 #: How far (a fraction of its size) a quad's corners may lie off their mean plane. The
@@ -56,7 +57,7 @@ __all__ = ["MAX_TRIANGLES", "SCENES_DIR", "bundled_scenes", "load_scene", "parse
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
-_TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver", "refine")
+_TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver", "refine", "meshing")
 _MATERIAL_KEYS = ("reflectance", "emission")
 _COMMON_KEYS = ("type", "name", "material", "element_size", "patch_size")
 _OBJECT_KEYS = {
@@ -204,10 +205,11 @@ class _Reader(Checker):
         camera = read_camera(self, top["camera"])
         solver = read_solver(self, top.get("solver", {}))
         refine = read_refine(self, top.get("refine", {}))
+        meshing = read_meshing(self, top.get("meshing", {}))
         self.check_light(objects)
         self.check_object_sizes()
         self.check_triangle_budget()
-        return Scene(list(self.materials.values()), objects, camera, solver, refine, source)
+        return Scene(list(self.materials.values()), objects, camera, solver, refine, source, meshing=meshing)
 
     def read_materials(self, v):
         expected = "a non-empty mapping of material names to {reflectance, emission}"

@@ -150,6 +150,16 @@ class RefineOptions:
 
 
 @dataclass
+class MeshingOptions:
+    """How the initial mesh is made (scene key ``meshing``)."""
+
+    # Mesh each planar surface that others touch (a block on a floor) conforming to where
+    # they touch, the covered part dropped (``hemirad.scene.contacts``). False: every
+    # surface is meshed on its own, as the paper's figures were.
+    contacts: bool = True
+
+
+@dataclass
 class Scene:
     materials: list[Material]
     objects: list[SceneObject]
@@ -160,6 +170,7 @@ class Scene:
     # Keys whose value a command-line option set, e.g. {"solver.resolution": "--resolution"}:
     # an error about such a value names the option, not the scene file.
     command_line: dict[str, str] = field(default_factory=dict)
+    meshing: MeshingOptions = field(default_factory=MeshingOptions)
 
     def with_element_sizes_scaled(self, factor: float) -> "Scene":
         """A copy of the scene with every element size (room faces' too) times ``factor``."""

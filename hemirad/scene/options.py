@@ -6,7 +6,7 @@ import numpy as np
 from hemirad.core.device import DEVICE_NAMES, is_device_name
 from hemirad.geometry.patterns import PATTERN_CHOICES
 from hemirad.scene.keys import Checker
-from hemirad.scene.model import CRITERION_NAMES, Camera, RefineOptions, SolverOptions
+from hemirad.scene.model import CRITERION_NAMES, Camera, MeshingOptions, RefineOptions, SolverOptions
 
 #: Refuse scenes whose estimated initial triangle count exceeds this.
 MAX_TRIANGLES = 5_000_000
@@ -14,6 +14,7 @@ MAX_TRIANGLES = 5_000_000
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot",
                 "shooter_split", "cache_mb")
+_MESHING_KEYS = ("contacts",)
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
                 "interior", "shadow_edges", "view_surface", "shots")
 
@@ -78,6 +79,14 @@ def read_solver(check: Checker, v) -> SolverOptions:
     if "cache_mb" in m:
         opts.cache_mb = check.bounded(m["cache_mb"], "solver.cache_mb", "a number of megabytes >= 0",
                                       lambda x: 0 <= x <= 1e7)
+    return opts
+
+
+def read_meshing(check: Checker, v) -> MeshingOptions:
+    m = check.section(v, "meshing", "a mapping of meshing options", _MESHING_KEYS)
+    opts = MeshingOptions()
+    if "contacts" in m:
+        opts.contacts = check.boolean(m["contacts"], "meshing.contacts")
     return opts
 
 
