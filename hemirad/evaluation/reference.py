@@ -151,10 +151,13 @@ class Reference:
         return cls(radiance, json.loads((folder / f"{name}.json").read_text()))
 
 
-def geometry_summary(scene: Scene, mesh: Mesh | None = None) -> dict:
+def geometry_summary(scene: Scene) -> dict:
     """What a reference was made from, to notice a scene changed since: the camera, the
-    materials, the triangle count and the total surface area (6 significant digits)."""
-    mesh = build_mesh(scene) if mesh is None else mesh
+    materials, the triangle count and the total surface area (6 significant digits) of
+    the surfaces as the scene describes them (meshed without contact meshing, which leaves
+    out only what nothing can see, so a path tracer renders the same image either way)."""
+    described = dataclasses.replace(scene, meshing=dataclasses.replace(scene.meshing, contacts=False))
+    mesh = build_mesh(described)
     camera = dataclasses.asdict(scene.camera)
     summary = {
         "triangles": mesh.num_elements,

@@ -44,15 +44,20 @@ def triangulate(region: BaseGeometry, lines: list[np.ndarray], element_size: flo
     """
     points, segments = _graph(region, lines, tolerance)
     points, segments = _divide(points, segments, element_size)
+    unique, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
+    if len(unique) < len(points):  # a division point on another point: one point, kept first
+        order = np.argsort(first)
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        points, segments = points[np.sort(first)], rank[inverse.reshape(-1)][segments]
+        segments = np.unique(np.sort(segments[segments[:, 0] != segments[:, 1]], axis=1), axis=0)
     # Triangle reads its area bound as digits and a point (no exponent), so it meshes the
     # region scaled to element_size 1; the input points keep their exact coordinates.
     centre = points.min(axis=0)
     scaled = (points - centre) / element_size
-    graph = {"vertices": scaled, "segments": segments}
-    holes = _hole_seeds(region, tolerance)
-    if len(holes):
-        graph["holes"] = (holes - centre) / element_size
-    out = triangle.triangulate(graph, f"pq{MIN_ANGLE:g}a{MAX_AREA:g}Q")
+    # No hole points: the wrapper hands Triangle's output the input's hole list and frees
+    # both (a double free). Holes are meshed too and their triangles dropped below.
+    out = triangle.triangulate({"vertices": scaled, "segments": segments}, f"pq{MIN_ANGLE:g}a{MAX_AREA:g}Q")
     found = np.asarray(out["vertices"], dtype=np.float64) * element_size + centre
     found[:len(points)] = points  # Triangle keeps the input points first, in order
     tris = np.asarray(out["triangles"], dtype=np.int64).reshape(-1, 3)
@@ -105,7 +110,10 @@ def _graph(region: BaseGeometry, lines: list[np.ndarray], tolerance: float) -> t
         edges = target[edges]
     edges = np.sort(edges, axis=1)
     edges = np.unique(edges[edges[:, 0] != edges[:, 1]], axis=0)
-    return points, edges
+    # only the points the segments use, each once: Triangle (through its wrapper) crashes
+    # on a duplicate point
+    used, index = np.unique(edges, return_inverse=True)
+    return points[used], index.reshape(-1, 2).astype(np.int64)
 
 
 def _merge(points: np.ndarray, p: np.ndarray, tolerance: float) -> int | None:
@@ -145,14 +153,3 @@ def _divide(points: np.ndarray, edges: np.ndarray, element_size: float) -> tuple
         new_edges.append(np.stack([chain[:-1], chain[1:]], axis=1))
         count += n - 1
     return np.concatenate(new_points), np.concatenate(new_edges).astype(np.int64).reshape(-1, 2)
-
-
-def _hole_seeds(region: BaseGeometry, tolerance: float) -> np.ndarray:
-    """(H, 2) one point inside each part of the region's convex hull that is not region
-    (holes and bays): where Triangle starts removing triangles. A seed on a segment would
-    let Triangle pick a side, so slivers with no point clear of the region get none (their
-    triangles are dropped by the centroid test instead)."""
-    outside = shapely.difference(shapely.convex_hull(region), region)
-    seeds = [shapely.point_on_surface(p) for p in shapely.get_parts(outside) if p.area > 0]
-    seeds = [s for s in seeds if shapely.distance(s, region) > tolerance]
-    return np.asarray([s.coords[0] for s in seeds], dtype=np.float64).reshape(-1, 2)
