@@ -81,7 +81,8 @@ def _remesh(surface: SurfaceGeometry, frame: PlaneFrame, found, tolerance: float
     lines = inner_lines(found.segments, remaining, tolerance)
     if remaining is region and not lines:
         return None
-    points, triangles = triangulate(remaining, lines, surface.element_size, tolerance)
+    grid = frame.to_plane(surface.vertices)  # the Steiner points away from the contacts
+    points, triangles = triangulate(remaining, lines, grid, surface.element_size, tolerance)
     return frame.lift(points), triangles
 
 

@@ -21,7 +21,7 @@ The schema, all lengths in scene units::
     camera: {position: [...], look_at: [...], up: [0, 1, 0], fov: 40, width: 512,
              height: 512, exposure: auto, supersample: 3}
     solver: {max_shots: 500, unshot_fraction: 1.0e-3, resolution: 128, ambient: true}
-    meshing: {contacts: true}          # mesh touched surfaces conforming to what touches them
+    meshing: {contacts: false}         # true: mesh touched surfaces conforming to what touches them
 
 This module reads the top level, materials and objects; the checks of single values are in
 ``keys.py``, the YAML dialect in ``yamlfile.py``, mesh objects and their files in

@@ -285,7 +285,7 @@ def build_mesh(scene: Scene) -> Mesh:
     ``<object>.patch<k>`` for the smooth patches of imported meshes, where ``<object>`` is
     the object's name (the loader names unnamed objects ``objects[i]``).
 
-    With ``scene.meshing.contacts`` (the default), a planar surface that others touch is
+    With ``scene.meshing.contacts`` (off by default), a planar surface that others touch is
     meshed conforming to where they touch, what they cover left out
     (``hemirad.scene.contacts``); a surface they cover whole is left out altogether.
     """

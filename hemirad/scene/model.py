@@ -154,9 +154,11 @@ class MeshingOptions:
     """How the initial mesh is made (scene key ``meshing``)."""
 
     # Mesh each planar surface that others touch (a block on a floor) conforming to where
-    # they touch, the covered part dropped (``hemirad.scene.contacts``). False: every
-    # surface is meshed on its own, as the paper's figures were.
-    contacts: bool = True
+    # they touch, the covered part dropped (``hemirad.scene.contacts``). Off by default:
+    # it pays only with elements of 1-2 cm beside the contacts; at the bundled scenes'
+    # sizes it made the Cornell floor beside the blocks worse (README, Contact meshing).
+    # False: every surface is meshed on its own, as the paper's figures were.
+    contacts: bool = False
 
 
 @dataclass
