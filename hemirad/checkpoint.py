@@ -91,6 +91,7 @@ def fingerprint(scene: Scene) -> dict[str, object]:
         "materials": _sha256(json.dumps(materials, sort_keys=True).encode()),
         "objects": _objects_digest(scene),
         "solver.resolution": scene.solver.resolution,
+        "meshing.contacts": scene.meshing.contacts,
         **{f"solver.{k}": getattr(scene.solver, k)
            for k in ("patch_size", "overshoot", "shooter_split", "small_receivers")},
         **{f"refine.{k}": getattr(scene.refine, k) for k in _REFINE_FIELDS},

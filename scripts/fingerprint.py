@@ -62,6 +62,8 @@ def fingerprint(settings: dict) -> dict:
     scene = hemirad.load_scene(settings["scene"])
     if hasattr(scene.solver, "paper"):  # the paper's configuration: every element shoots
         scene.solver.paper()
+    if hasattr(scene, "meshing"):  # the paper's meshes: every surface meshed on its own
+        scene.meshing.contacts = False
     scene.solver.max_shots, scene.solver.unshot_fraction = settings["max_shots"], 0.0
     scene.solver.resolution = settings["resolution"]
     r = scene.refine

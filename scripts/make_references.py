@@ -90,7 +90,7 @@ def make(name: str, spp: int, height: int, out: Path, seed: int, variant: str) -
         "seeds": [2 * seed, 2 * seed + 1],
         "seconds": round(seconds, 1),
         "noise": {k: float(f"{v:.4g}") for k, v in noise.items()},
-        "geometry": reference.geometry_summary(scene, mesh),
+        "geometry": reference.geometry_summary(scene),
     }
     paths = reference.Reference(mean, info).save(out, name)
     sizes = ", ".join(f"{p.name} {p.stat().st_size / 1024:.0f} KB" for p in paths)

@@ -46,6 +46,7 @@ PAPER_ANGLE_VARIANCE = {"pattern1": 247.0, "pattern2": 1.35}
 def configure(name: str, pattern: str, args) -> hemirad.scene.Scene:
     scene = hemirad.load_scene(name)
     scene.solver.paper()  # every element shoots from its centroid, as in the paper
+    scene.meshing.contacts = False  # and every surface is meshed on its own, as the paper's were
     scene.solver.max_shots, scene.solver.unshot_fraction = args.shots, 0.0
     scene.solver.resolution = args.resolution
     scene.refine.pattern, scene.refine.threshold, scene.refine.relative = pattern, args.threshold, True

@@ -152,11 +152,14 @@ class Reference:
         return cls(radiance, json.loads((folder / f"{name}.json").read_text()))
 
 
-def geometry_summary(scene: Scene, mesh: Mesh | None = None) -> dict:
+def geometry_summary(scene: Scene) -> dict:
     """What a reference was made from, to notice a scene changed since: the camera, the
     materials (a flux with the exitance it makes), the triangle count and the total
-    surface area (6 significant digits)."""
-    mesh = build_mesh(scene) if mesh is None else mesh
+    surface area (6 significant digits) of the surfaces as the scene describes them (meshed
+    without contact meshing, which leaves out only what nothing can see, so a path tracer
+    renders the same image either way)."""
+    described = dataclasses.replace(scene, meshing=dataclasses.replace(scene.meshing, contacts=False))
+    mesh = build_mesh(described) if mesh is None else mesh
     camera = dataclasses.asdict(scene.camera)
     emission = emission_table(scene, mesh).tolist()
     materials = {}

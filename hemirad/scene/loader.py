@@ -30,6 +30,7 @@ The schema, all lengths in scene units::
     grids: [{name: desk, work_plane: {height: 0.75, min: [x, z], max: [x, z]}, spacing: 0.2}]
 
 A material may give ``flux: <lumens>`` (and ``colour``) instead of ``emission``.
+    meshing: {contacts: false}         # true: mesh touched surfaces conforming to what touches them
 
 This module reads the top level, materials and objects; the checks of single values are in
 ``keys.py``, the YAML dialect in ``yamlfile.py``, mesh objects and their files in
@@ -51,7 +52,7 @@ from hemirad.scene.meshfile import read_mesh_object
 from hemirad.scene.meshing import box_face_corners, quad_triangles
 from hemirad.scene.model import (MAX_EMISSION, MIN_EMISSION, Box, FaceOverride, Material, MeshFile, Quad, Room, Scene,
                                  SceneObject)
-from hemirad.scene.options import MAX_TRIANGLES, read_camera, read_patch_size, read_refine, read_solver
+from hemirad.scene.options import MAX_TRIANGLES, read_camera, read_meshing, read_patch_size, read_refine, read_solver
 from hemirad.scene.sensorblocks import read_grids, read_length_unit, read_sensors, read_units
 from hemirad.scene.yamlfile import parse_yaml
 
@@ -67,7 +68,7 @@ __all__ = ["MAX_TRIANGLES", "SCENES_DIR", "bundled_scenes", "load_scene", "parse
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
 _TOP_KEYS = ("element_size", "materials", "objects", "camera", "solver", "refine", "falsecolour", "units", "unit",
-             "sensors", "grids")
+             "sensors", "grids", "meshing")
 
 #: The longest surface name ``falsecolour`` may hold: it becomes part of a file name.
 MAX_SURFACE_NAME = 200
@@ -236,12 +237,13 @@ class _Reader(Checker):
         unit = read_length_unit(self, top["unit"]) if "unit" in top else 1.0
         sensors = read_sensors(self, top["sensors"]) if "sensors" in top else []
         grids = read_grids(self, top["grids"]) if "grids" in top else []
+        meshing = read_meshing(self, top.get("meshing", {}))
         self.check_light(objects)
         self.check_object_sizes()
         self.check_triangle_budget()
         materials = list(self.materials.values()) + list(self.file_materials.values())
         return Scene(materials, objects, camera, solver, refine, source, falsecolour=surfaces, sensors=sensors,
-                     grids=grids, units=units, metres_per_unit=unit)
+                     grids=grids, units=units, metres_per_unit=unit, meshing=meshing)
 
     def read_falsecolour(self, v) -> list[str]:
         """A list of surface names; whether the scene has them is checked once it is meshed."""

@@ -22,6 +22,7 @@ import torch
 
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.mesh import Mesh
+from hemirad.scene.contacts import SurfaceGeometry, conform_to_contacts
 from hemirad.scene.meshfile import MeshContents, MeshFileUnreadable, clean_triangles, contents_of
 from hemirad.scene.model import Box, MeshFile, Quad, Room, Scene
 
@@ -35,6 +36,7 @@ class _Surface:
     vertices: torch.Tensor  # (V, 3) float64
     triangles: torch.Tensor  # (T, 3) int64, indices into vertices
     material: int
+    element_size: float  # what it was meshed at
 
 
 # ----------------------------------------------------------------------------------------
@@ -141,7 +143,7 @@ def _room_surfaces(room: Room, label: str, scene: Scene) -> list[_Surface]:
         material = (override.material if override and override.material else None) or room.material
         size = (override.element_size if override and override.element_size else None) or room.element_size
         v, t = grid_quad(box_face_corners(room.min, room.max, face, inward=True), size)
-        out.append(_Surface(f"{label}.{face}", v, t, scene.material_index(material)))
+        out.append(_Surface(f"{label}.{face}", v, t, scene.material_index(material), size))
     return out
 
 
@@ -149,13 +151,14 @@ def _box_surfaces(box: Box, label: str, scene: Scene) -> list[_Surface]:
     out = []
     for face in Room.FACE_NAMES:
         v, t = grid_quad(box_face_corners(box.min, box.max, face, inward=False), box.element_size)
-        out.append(_Surface(f"{label}.{_BOX_FACE_NAMES[face]}", v, t, scene.material_index(box.material)))
+        out.append(_Surface(f"{label}.{_BOX_FACE_NAMES[face]}", v, t, scene.material_index(box.material),
+                            box.element_size))
     return out
 
 
 def _quad_surfaces(quad: Quad, label: str, scene: Scene) -> list[_Surface]:
     v, t = grid_quad(torch.tensor(quad.corners, dtype=torch.float64), quad.element_size)
-    return [_Surface(label, v, t, scene.material_index(quad.material))]
+    return [_Surface(label, v, t, scene.material_index(quad.material), quad.element_size)]
 
 
 # ----------------------------------------------------------------------------------------
@@ -260,7 +263,8 @@ def _mesh_file_surfaces(obj: MeshFile, label: str, scene: Scene) -> list[_Surfac
         used, local = np.unique(faces[patch], return_inverse=True)
         v, f = _subdivide(vertices[used], local.reshape(-1, 3), obj.element_size)
         name = label if len(patches) == 1 else f"{label}.patch{k}"
-        out.append(_Surface(name, torch.from_numpy(v), torch.from_numpy(f), int(face_material[patch[0]])))
+        out.append(_Surface(name, torch.from_numpy(v), torch.from_numpy(f), int(face_material[patch[0]]),
+                            obj.element_size))
     return out
 
 
@@ -282,6 +286,20 @@ def surface_objects(scene: Scene, mesh: Mesh) -> np.ndarray:
                        for name in mesh.surface_names], dtype=np.int64)
 
 
+def _conform_to_contacts(surfaces: list[_Surface]) -> list[_Surface]:
+    """The surfaces with those others touch meshed anew, and those covered whole dropped."""
+    geometry = [SurfaceGeometry(s.vertices.numpy(), s.triangles.numpy(), s.element_size) for s in surfaces]
+    out = []
+    for surface, new in zip(surfaces, conform_to_contacts(geometry)):
+        if new is None:
+            out.append(surface)
+        elif len(new[1]):
+            v, t = (torch.from_numpy(np.ascontiguousarray(a)) for a in new)
+            out.append(_Surface(surface.name, v.to(torch.float64), t.to(torch.int64), surface.material,
+                                surface.element_size))
+    return out
+
+
 def build_mesh(scene: Scene) -> Mesh:
     """The initial mesh of a scene: one or more surfaces per object, in object order.
 
@@ -289,11 +307,17 @@ def build_mesh(scene: Scene) -> Mesh:
     z_max) and boxes (bottom, top, x_min, ...), ``<object>`` for quads and ``<object>`` or
     ``<object>.patch<k>`` for the smooth patches (each of one material) of imported meshes,
     where ``<object>`` is the object's name (the loader names unnamed objects ``objects[i]``).
+
+    With ``scene.meshing.contacts`` (off by default), a planar surface that others touch is
+    meshed conforming to where they touch, what they cover left out
+    (``hemirad.scene.contacts``); a surface they cover whole is left out altogether.
     """
     surfaces: list[_Surface] = []
     builders = {Room: _room_surfaces, Box: _box_surfaces, Quad: _quad_surfaces, MeshFile: _mesh_file_surfaces}
     for obj, label in zip(scene.objects, _labels(scene)):
         surfaces.extend(builders[type(obj)](obj, label, scene))
+    if scene.meshing.contacts:
+        surfaces = _conform_to_contacts(surfaces)
 
     vertices, triangles, surface, material = [], [], [], []
     offset = 0

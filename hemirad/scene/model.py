@@ -230,6 +230,18 @@ class Grid:
 
 
 @dataclass
+class MeshingOptions:
+    """How the initial mesh is made (scene key ``meshing``)."""
+
+    # Mesh each planar surface that others touch (a block on a floor) conforming to where
+    # they touch, the covered part dropped (``hemirad.scene.contacts``). Off by default:
+    # it pays only with elements of 1-2 cm beside the contacts; at the bundled scenes'
+    # sizes it made the Cornell floor beside the blocks worse (README, Contact meshing).
+    # False: every surface is meshed on its own, as the paper's figures were.
+    contacts: bool = False
+
+
+@dataclass
 class Scene:
     materials: list[Material]
     objects: list[SceneObject]
@@ -247,6 +259,7 @@ class Scene:
     # Surfaces (names as for refine.view_surface) drawn as false-colour maps of the light
     # falling on them, one falsecolour_<name>.png each.
     falsecolour: list[str] = field(default_factory=list)
+    meshing: MeshingOptions = field(default_factory=MeshingOptions)
 
     def with_element_sizes_scaled(self, factor: float) -> "Scene":
         """A copy of the scene with every element size (room faces' too) times ``factor``."""

@@ -6,7 +6,8 @@ import numpy as np
 from hemirad.core.device import DEVICE_NAMES, is_device_name
 from hemirad.geometry.patterns import PATTERN_CHOICES
 from hemirad.scene.keys import Checker
-from hemirad.scene.model import CRITERION_NAMES, SMALL_RECEIVER_CHOICES, Camera, RefineOptions, SolverOptions
+from hemirad.scene.model import (CRITERION_NAMES, SMALL_RECEIVER_CHOICES, Camera, MeshingOptions, RefineOptions,
+                                 SolverOptions)
 
 #: Refuse scenes whose estimated initial triangle count exceeds this.
 MAX_TRIANGLES = 5_000_000
@@ -14,6 +15,7 @@ MAX_TRIANGLES = 5_000_000
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot",
                 "shooter_split", "cache_mb", "small_receivers")
+_MESHING_KEYS = ("contacts",)
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
                 "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds")
 
@@ -80,6 +82,14 @@ def read_solver(check: Checker, v) -> SolverOptions:
                                       lambda x: 0 <= x <= 1e7)
     if "small_receivers" in m:
         opts.small_receivers = check.choice(m["small_receivers"], "solver.small_receivers", SMALL_RECEIVER_CHOICES)
+    return opts
+
+
+def read_meshing(check: Checker, v) -> MeshingOptions:
+    m = check.section(v, "meshing", "a mapping of meshing options", _MESHING_KEYS)
+    opts = MeshingOptions()
+    if "contacts" in m:
+        opts.contacts = check.boolean(m["contacts"], "meshing.contacts")
     return opts
 
 

@@ -1,0 +1,113 @@
+"""Meshes that respect contact lines: each planar surface that other surfaces touch is
+meshed anew so that no element straddles where they touch, and what they cover is dropped.
+
+Where a block stands on a floor the shadow is sharp along its footprint, and a floor
+element straddling the footprint gives lit, shadowed and hidden floor one value (measured on
+the Cornell box: -38% to +157% 0.5-2 cm outside the blocks at every uniform element size
+tried). So before the solve, for every planar surface (a quad, a face of a room or box, a
+planar patch of a mesh file), ``geometry.footprints`` finds from the geometry alone what
+touches it: faces lying in its plane facing it and faces standing on it. The touched
+surface is then triangulated afresh (``geometry.conforming``) with the footprints' outlines
+and the contact lines as element edges and the covered part left out: nothing can see or
+light it. Surfaces nothing touches (or touches only along their outline, as walls meet a
+floor) keep their meshes exactly.
+
+Contacts are found on the surfaces as first meshed, so the result does not depend on the
+order of the objects.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hemirad.geometry.conforming import triangulate
+from hemirad.geometry.footprints import PlaneFrame, contacts, inner_lines, planar_frame, surface_region
+
+#: Points within this fraction of the scene's size of a plane touch it. The bundled scenes'
+#: parts meant not to touch keep 1e-4 or more of their size apart (a lamp under a
+#: ceiling, a desk top on its legs), and a contact is exact in a scene file's numbers.
+CONTACT_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class SurfaceGeometry:
+    """One surface as first meshed: (V, 3) float64 ``vertices``, (T, 3) int64 ``triangles``
+    and the ``element_size`` it was meshed at."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    element_size: float
+
+
+def conform_to_contacts(surfaces: list[SurfaceGeometry]) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """For each surface, its new (vertices (V', 3), triangles (T', 3)) where others touch it
+    (T' may be 0: all of it is covered), or None where its mesh stays as it is."""
+    if not surfaces:
+        return []
+    everything = np.concatenate([s.vertices for s in surfaces])
+    tolerance = CONTACT_TOLERANCE * float(np.ptp(everything, axis=0).max())
+    corners = [s.vertices[s.triangles] for s in surfaces]
+    normals = [_unit_normals(c) for c in corners]
+    low = np.stack([s.vertices.min(axis=0) for s in surfaces])
+    high = np.stack([s.vertices.max(axis=0) for s in surfaces])
+    out = []
+    for i, surface in enumerate(surfaces):
+        frame = planar_frame(surface.vertices, surface.triangles, tolerance)
+        if frame is None:
+            out.append(None)
+            continue
+        near = _touching(frame, i, low, high, tolerance)
+        touching = [(corners[j][rows], normals[j][rows]) for j in near
+                    for rows in [_rows_on_plane(frame, corners[j], low[i], high[i], tolerance)] if len(rows)]
+        if not touching:
+            out.append(None)
+            continue
+        found = contacts(frame, np.concatenate([c for c, _ in touching]),
+                         np.concatenate([n for _, n in touching]), tolerance)
+        out.append(None if found.empty else _remesh(surface, frame, found, tolerance))
+    return out
+
+
+def _remesh(surface: SurfaceGeometry, frame: PlaneFrame, found, tolerance: float):
+    """The surface meshed around its contacts, or None when they change nothing (they lie
+    along its outline, or outside it)."""
+    region = surface_region(frame, surface.vertices, surface.triangles, tolerance)
+    covered = found.covered.intersection(region)
+    sliver = tolerance * region.length  # the area of a band of the tolerance's width along the outline
+    remaining = region.difference(covered) if covered.area > sliver else region
+    if remaining.area <= sliver:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+    lines = inner_lines(found.segments, remaining, tolerance)
+    if remaining is region and not lines:
+        return None
+    grid = frame.to_plane(surface.vertices)  # the Steiner points away from the contacts
+    points, triangles = triangulate(remaining, lines, grid, surface.element_size, tolerance)
+    return frame.lift(points), triangles
+
+
+def _unit_normals(corners: np.ndarray) -> np.ndarray:
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    return cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)
+
+
+def _touching(frame: PlaneFrame, own: int, low: np.ndarray, high: np.ndarray, tolerance: float) -> list[int]:
+    """The surfaces (other than ``own``) whose bounding boxes (S, 3) ``low``/``high`` overlap
+    ``own``'s and reach the plane, each within ``tolerance``."""
+    overlap = ((low <= high[own] + tolerance) & (high >= low[own] - tolerance)).all(axis=1)
+    centre, half = 0.5 * (low + high), 0.5 * (high - low)
+    height = frame.height(centre)
+    reach = half @ np.abs(frame.normal)
+    crosses = (height - reach <= tolerance) & (height + reach >= -tolerance)
+    overlap &= crosses
+    overlap[own] = False
+    return np.flatnonzero(overlap).tolist()
+
+
+def _rows_on_plane(frame: PlaneFrame, corners: np.ndarray, low: np.ndarray, high: np.ndarray,
+                   tolerance: float) -> np.ndarray:
+    """The triangles of (K, 3, 3) ``corners`` with two or more corners on the plane, within
+    ``tolerance`` of the touched surface's bounding box (3,) ``low``/``high``."""
+    on = np.abs(frame.height(corners)) <= tolerance
+    near = (corners.min(axis=1) <= high + tolerance).all(axis=1) & (corners.max(axis=1) >= low - tolerance).all(axis=1)
+    return np.flatnonzero((on.sum(axis=1) >= 2) & near)

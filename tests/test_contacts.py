@@ -1,0 +1,402 @@
+"""Meshes that respect contact lines (hemirad.scene.contacts): where a block stands on a
+floor, no floor element straddles its footprint, the covered floor is dropped, and what
+nothing touches is meshed exactly as before."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import hemirad
+from hemirad.core.errors import SceneError
+from hemirad.scene.loader import parse_scene
+from hemirad.scene.meshing import build_mesh
+from hemirad.scene.model import Box, Camera, Material, Quad, Room, Scene
+
+REFERENCES = Path(__file__).resolve().parent / "references"
+
+# The Cornell blocks' footprints (x, z), from cornell_box.yaml: each side quad's bottom edge.
+CORNELL_FOOTPRINTS = {
+    "short_block": [(130.0, 65.0), (82.0, 225.0), (240.0, 272.0), (290.0, 114.0)],
+    "tall_block": [(423.0, 247.0), (265.0, 296.0), (314.0, 456.0), (472.0, 406.0)],
+}
+CORNELL_FLOOR = [(552.8, 0.0), (0.0, 0.0), (0.0, 559.2), (549.6, 559.2)]
+
+
+def shoelace(points) -> float:
+    p = np.asarray(points, dtype=np.float64)
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def cross2(a, b) -> float:
+    return float(a[0] * b[1] - a[1] * b[0])
+
+
+def surface_area(mesh, name: str) -> float:
+    return float(mesh.areas[mesh.surface == mesh.surface_names.index(name)].sum())
+
+
+def surface_triangles(mesh, name: str) -> np.ndarray:
+    """(K, 3, 2) the (x, z) corners of a horizontal surface's triangles."""
+    s = mesh.surface_names.index(name)
+    return mesh.corners[mesh.surface == s].numpy()[:, :, [0, 2]]
+
+
+def angles(corners: np.ndarray) -> np.ndarray:
+    """(K, 3) interior angles in degrees of (K, 3, 2) triangles."""
+    out = []
+    for k in range(3):
+        a, b, c = corners[:, k], corners[:, (k + 1) % 3], corners[:, (k + 2) % 3]
+        u, v = b - a, c - a
+        cos = (u * v).sum(1) / np.linalg.norm(u, axis=1) / np.linalg.norm(v, axis=1)
+        out.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    return np.stack(out, 1)
+
+
+def outside_convex(corners: np.ndarray, polygon, tolerance: float) -> np.ndarray:
+    """(K,) whether each triangle lies on the outer side of one of the convex ``polygon``'s
+    edges (so it has no area inside it): the separating-line test."""
+    p = np.asarray(polygon, dtype=np.float64)
+    if cross2(p[1] - p[0], p[2] - p[1]) < 0:
+        p = p[::-1]  # counter-clockwise
+    separated = np.zeros(len(corners), dtype=bool)
+    for a, b in zip(p, np.roll(p, -1, axis=0)):
+        edge = b - a
+        outward = np.array([edge[1], -edge[0]]) / np.linalg.norm(edge)
+        separated |= ((corners - a) @ outward >= -tolerance).all(axis=1)
+    return separated
+
+
+def straddles(corners: np.ndarray, polygon, tolerance: float) -> np.ndarray:
+    """(K,) whether each triangle has corners strictly inside and strictly outside the convex
+    polygon (beyond ``tolerance`` of its outline)."""
+    p = np.asarray(polygon, dtype=np.float64)
+    if cross2(p[1] - p[0], p[2] - p[1]) < 0:
+        p = p[::-1]
+    depth = np.full(corners.shape[:2], np.inf)  # signed distance inside (positive) per corner
+    for a, b in zip(p, np.roll(p, -1, axis=0)):
+        edge = b - a
+        inward = np.array([-edge[1], edge[0]]) / np.linalg.norm(edge)
+        depth = np.minimum(depth, (corners - a) @ inward)
+    return (depth > tolerance).any(axis=1) & (depth < -tolerance).any(axis=1)
+
+
+# The conforming mesher (hemirad.geometry.conforming) refines every triangle with an angle
+# under 28 degrees (Ruppert's circumcentre insertion; 30 sets off waves of insertions through
+# the element grid), so where it converges no angle is under 28 and none over 180 - 2 x 28.
+# Measured: the boxes below 31.3-94.8, the Cornell floor 29.1-109.8 (its grid points and
+# outline divisions need no refinement), the office floor around its nine standing boxes
+# 28.3-122.7 (refined around the 4-5 cm legs).
+MIN_ANGLE, MAX_ANGLE = 28.0, 124.0
+
+
+def load_with_contacts(name: str) -> Scene:
+    scene = hemirad.load_scene(name)
+    scene.meshing.contacts = True  # off by default
+    return scene
+
+
+def box_on_floor_scene(box_min, box_max, contacts: bool = True) -> Scene:
+    materials = [Material("white", (0.5, 0.5, 0.5)), Material("lamp", (0.0, 0.0, 0.0), (10.0, 10.0, 10.0))]
+    objects = [Room((0.0, 0.0, 0.0), (4.0, 2.5, 3.0), "white", 0.25, name="room"),
+               Quad(((1.5, 2.49, 1.0), (2.5, 2.49, 1.0), (2.5, 2.49, 2.0), (1.5, 2.49, 2.0)), "lamp", 0.25,
+                    name="lamp"),
+               Box(box_min, box_max, "white", 0.25, name="box")]
+    scene = Scene(materials, objects, Camera((2.0, 1.5, -1.0), (2.0, 0.5, 1.5)))
+    scene.meshing.contacts = contacts
+    return scene
+
+
+# ----------------------------------------------------------------------------------------
+# footprints
+
+
+@pytest.mark.parametrize("box", [((1.1, 0.0, 0.7), (1.9, 0.6, 1.3)),  # in the middle of the floor
+                                 ((0.0, 0.0, 2.3), (0.55, 0.6, 3.0))],  # in a corner, against two walls
+                         ids=["middle", "corner"])
+def test_a_box_on_the_floor_is_cut_out_of_it(box):
+    lo, hi = box
+    mesh = build_mesh(box_on_floor_scene(lo, hi))
+    floor = surface_triangles(mesh, "room.floor")
+    footprint = [(lo[0], lo[2]), (hi[0], lo[2]), (hi[0], hi[2]), (lo[0], hi[2])]
+    tolerance = 1e-9 * 4.0
+    assert outside_convex(floor, footprint, tolerance).all()  # none inside or straddling
+    area = surface_area(mesh, "room.floor")
+    expected = 4.0 * 3.0 - (hi[0] - lo[0]) * (hi[2] - lo[2])
+    assert area == pytest.approx(expected, rel=1e-9)
+    a = angles(floor)
+    assert a.min() > MIN_ANGLE and a.max() < MAX_ANGLE, (a.min(), a.max())
+    # about element_size: the mean triangle not far from the grid's (0.25^2 / 2)
+    assert 0.5 < (area / len(floor)) / (0.25 ** 2 / 2) < 2.0
+    # the box's bottom lies on the floor facing it: hidden, so it is dropped whole; so are
+    # its sides against walls, and the walls lose what they cover
+    assert "box.bottom" not in mesh.surface_names
+    in_corner = lo[0] == 0.0
+    assert ("box.x_min" in mesh.surface_names) != in_corner
+    assert ("box.z_max" in mesh.surface_names) != in_corner
+    if in_corner:
+        assert surface_area(mesh, "room.x_min") == pytest.approx(3.0 * 2.5 - (hi[1] - lo[1]) * (hi[2] - lo[2]), rel=1e-9)
+        assert surface_area(mesh, "room.z_max") == pytest.approx(4.0 * 2.5 - (hi[0] - lo[0]) * (hi[1] - lo[1]), rel=1e-9)
+    # what nothing touches keeps its grid
+    plain = build_mesh(box_on_floor_scene(lo, hi, contacts=False))
+    for name in ("box.top", "box.x_max", "room.ceiling", "lamp"):
+        a_, b_ = (m.corners[m.surface == m.surface_names.index(name)] for m in (mesh, plain))
+        assert torch.equal(a_, b_), name
+
+
+def test_the_control_straddles():
+    """The checks above can fail: without contact meshing, the grid straddles the footprint."""
+    lo, hi = (1.1, 0.0, 0.7), (1.9, 0.6, 1.3)
+    mesh = build_mesh(box_on_floor_scene(lo, hi, contacts=False))
+    floor = surface_triangles(mesh, "room.floor")
+    footprint = [(lo[0], lo[2]), (hi[0], lo[2]), (hi[0], hi[2]), (lo[0], hi[2])]
+    assert straddles(floor, footprint, 1e-6).any()
+    assert not outside_convex(floor, footprint, 1e-9).all()
+    assert "box.bottom" in mesh.surface_names
+
+
+def test_cornell_blocks_footprints():
+    """The blocks have no bottom faces: their footprints are the polygons their sides'
+    bottom edges close."""
+    mesh = build_mesh(load_with_contacts("cornell_box"))
+    floor = surface_triangles(mesh, "floor")
+    tolerance = 1e-9 * 560
+    for name, footprint in CORNELL_FOOTPRINTS.items():
+        assert outside_convex(floor, footprint, tolerance).all(), name
+        assert not straddles(floor, footprint, tolerance).any(), name
+    area = float(mesh.areas[mesh.surface == mesh.surface_names.index("floor")].sum())
+    expected = shoelace(CORNELL_FLOOR) - sum(shoelace(f) for f in CORNELL_FOOTPRINTS.values())
+    assert area == pytest.approx(expected, rel=1e-9)
+    a = angles(floor)
+    assert a.min() > MIN_ANGLE and a.max() < MAX_ANGLE, (a.min(), a.max())
+    # the walls standing around the floor face into it: it is not a footprint
+    assert area > 0.8 * shoelace(CORNELL_FLOOR)
+    # the light hangs 0.5 mm under the ceiling: not a contact, the ceiling keeps its grid
+    before = build_mesh(hemirad.load_scene("cornell_box"))
+    for name in mesh.surface_names:
+        if name != "floor":
+            a_, b_ = (m.corners[m.surface == m.surface_names.index(name)] for m in (mesh, before))
+            assert torch.equal(a_, b_), name
+
+
+def test_office_floor_around_the_legs():
+    mesh = build_mesh(load_with_contacts("office"))
+    floor = surface_triangles(mesh, "room.floor")
+    standing = [o for o in hemirad.load_scene("office").objects if isinstance(o, Box) and o.min[1] == 0.0]
+    assert len(standing) == 9  # four desk legs, four chair legs, the PC tower
+    for box in standing:
+        footprint = [(box.min[0], box.min[2]), (box.max[0], box.min[2]), (box.max[0], box.max[2]),
+                     (box.min[0], box.max[2])]
+        assert outside_convex(floor, footprint, 1e-9 * 5).all(), box.name
+        assert f"{box.name}.bottom" not in mesh.surface_names
+    area = float(mesh.areas[mesh.surface == mesh.surface_names.index("room.floor")].sum())
+    covered = sum((b.max[0] - b.min[0]) * (b.max[2] - b.min[2]) for b in standing)
+    assert area == pytest.approx(5.0 * 4.0 - covered, rel=1e-9)
+    a = angles(floor)  # refined around the legs, 4-5 cm across on a floor of 15 cm elements
+    assert a.min() > MIN_ANGLE and a.max() < MAX_ANGLE, (a.min(), a.max())
+    # the desk top sits 1 mm over its legs: not a contact, it keeps its grid
+    before = build_mesh(hemirad.load_scene("office"))
+    for name in ("desk.top.bottom", "desk.top.top", "chair.seat.bottom"):
+        a_, b_ = (m.corners[m.surface == m.surface_names.index(name)] for m in (mesh, before))
+        assert torch.equal(a_, b_), name
+
+
+def test_a_standing_plate_is_an_edge_of_the_floor_mesh():
+    """A one-sided plate standing on the floor closes no footprint: nothing is dropped, but
+    its contact line is made of element edges (no floor element crosses it)."""
+    scene = box_on_floor_scene((3.0, 0.0, 2.0), (3.5, 0.5, 2.5))
+    scene.objects[2] = Quad(((1.0, 0.0, 1.3), (2.7, 0.0, 1.3), (2.7, 0.8, 1.3), (1.0, 0.8, 1.3)), "white", 0.25,
+                            name="plate")
+    mesh = build_mesh(scene)
+    floor = surface_triangles(mesh, "room.floor")
+    area = float(mesh.areas[mesh.surface == mesh.surface_names.index("room.floor")].sum())
+    assert area == pytest.approx(12.0, rel=1e-9)
+    along = (floor[..., 0].max(1) > 1.0 + 1e-9) & (floor[..., 0].min(1) < 2.7 - 1e-9)
+    z = floor[along, :, 1]
+    assert ((z >= 1.3 - 1e-9).all(1) | (z <= 1.3 + 1e-9).all(1)).all()
+    a = angles(floor)
+    assert a.min() > MIN_ANGLE and a.max() < MAX_ANGLE, (a.min(), a.max())
+
+
+def test_an_untouched_scene_is_meshed_as_before():
+    """floating: the board floats and the walls only meet the floor along its outline."""
+    scene = load_with_contacts("floating")
+    with_contacts = build_mesh(scene)
+    scene.meshing.contacts = False
+    without = build_mesh(scene)
+    for field in ("vertices", "triangles", "surface", "material"):
+        assert torch.equal(getattr(with_contacts, field), getattr(without, field)), field
+    assert with_contacts.surface_names == without.surface_names
+
+
+def test_the_scene_key():
+    base = {"materials": {"lamp": {"reflectance": 0.0, "emission": 1.0}},
+            "objects": [{"type": "quad", "material": "lamp", "element_size": 1.0,
+                         "corners": [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]}],
+            "camera": {"position": [0, 0, 3], "look_at": [0, 0, 0]}}
+    assert parse_scene(base).meshing.contacts is False  # opt-in: see the README's Contact meshing
+    assert parse_scene({**base, "meshing": {"contacts": True}}).meshing.contacts is True
+    assert parse_scene({**base, "meshing": {"contacts": False}}).meshing.contacts is False
+    with pytest.raises(SceneError, match=r"meshing\.contacts"):
+        parse_scene({**base, "meshing": {"contacts": "yes please"}})
+    with pytest.raises(SceneError, match="contacts"):
+        parse_scene({**base, "meshing": {"contact": True}})
+
+
+def test_patches_and_refinement_on_a_conforming_floor():
+    """The downstream stages take the irregular floor: patches tile it, pattern 2 refines it,
+    power balances."""
+    scene = box_on_floor_scene((1.1, 0.0, 0.7), (1.9, 0.6, 1.3))
+    scene.solver.max_shots, scene.solver.unshot_fraction, scene.solver.resolution = 60, 0.0, 32
+    scene.refine.pattern, scene.refine.threshold = "pattern2", 3e-3
+    result = hemirad.solve(scene, progress=None)
+    s = result.stats
+    mesh = result.mesh
+    on_floor = mesh.surface == mesh.surface_names.index("room.floor")
+    assert bool((mesh.level[on_floor] > 0).any())  # the irregular floor was refined
+    emitted, absorbed = np.array(s["emitted_power"]), np.array(s["absorbed_power"])
+    escaped, unshot = np.array(s["escaped_power"]), np.array(s["unshot_power"])
+    np.testing.assert_allclose(absorbed + escaped + unshot, emitted, rtol=1e-9)
+    floor = result.mesh_image("room.floor")
+    assert floor.shape[2] == 3 and floor.std() > 0
+
+
+# ----------------------------------------------------------------------------------------
+# the conforming mesher on its own
+
+
+def test_a_thin_slot_and_a_crossing_line_are_element_edges():
+    """A square with a thin slanted slot cut out (its long sides 1/20 of an element apart,
+    so a plain Delaunay triangulation of the divided outline misses them) and a line
+    crossing the square: every outline and line piece is a union of edges, nothing lies in
+    the slot, the area is exact, the angles within the mesher's bound (the slot's corners
+    are right angles), and the same input gives the same triangles."""
+    import shapely
+    from shapely.geometry import Polygon
+
+    from hemirad.geometry.conforming import triangulate
+
+    h = 0.1
+    along, across = np.array([2.0, 1.0]) / math.sqrt(5), np.array([-1.0, 2.0]) / math.sqrt(5)
+    start = np.array([0.3, 0.3])
+    slot = np.stack([start, start + 0.45 * along, start + 0.45 * along + 0.005 * across, start + 0.005 * across])
+    region = Polygon([(0, 0), (1, 0), (1, 1), (0, 1)], [slot])
+    line = np.array([[0.0, 0.8], [1.0, 0.7]])  # across the square, its ends on the outline
+    grid = np.stack(np.meshgrid(np.linspace(0, 1, 11), np.linspace(0, 1, 11)), -1).reshape(-1, 2)
+    points, triangles = triangulate(region, [line], grid, h, 1e-9)
+    corners = points[triangles]
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    signed = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    assert (signed > 0).all()  # counter-clockwise
+    assert signed.sum() == pytest.approx(1.0 - shoelace(slot), rel=1e-12)
+    assert outside_convex(corners, slot, 1e-12).all()
+    assert not straddles(corners, slot, 1e-12).any()
+    # no triangle has corners strictly on both sides of the line (it crosses the square)
+    d = line[1] - line[0]
+    side = np.array([cross2(d, c - line[0]) for c in corners.reshape(-1, 2)]).reshape(-1, 3)
+    assert not ((side > 1e-12).any(1) & (side < -1e-12).any(1)).any()
+    a = angles(corners)
+    assert a.min() > MIN_ANGLE and a.max() < MAX_ANGLE, (a.min(), a.max())
+    # about the element size away from the slot (near it, down to its 0.005 ends): the
+    # grid's cells have diagonals of 1.41 h; beside the line, grid points within h / 2 of
+    # it are left out, so a little longer there
+    longest = np.linalg.norm(corners[:, [1, 2, 0]] - corners, axis=-1).max(axis=1)
+    far = shapely.distance(shapely.points(corners.mean(axis=1)), Polygon(slot)) > 2 * h
+    assert far.sum() > 100 and (longest[far] > 0.5 * h).all() and (longest[far] < 1.7 * h).all()
+    again_points, again = triangulate(region, [line], grid, h, 1e-9)
+    assert np.array_equal(again_points, points) and np.array_equal(again, triangles)
+
+
+# ----------------------------------------------------------------------------------------
+# the floor beside the Cornell blocks, against the path-traced reference
+
+
+def _floor_points_beside_blocks(offset: float) -> list[np.ndarray]:
+    """3D floor points ``offset`` outside each block's sides, nine along each side."""
+    points = []
+    for footprint in CORNELL_FOOTPRINTS.values():
+        fp = np.asarray(footprint)
+        centre = fp.mean(0)
+        for a, b in zip(fp, np.roll(fp, -1, axis=0)):
+            edge = b - a
+            out = np.array([edge[1], -edge[0]]) / np.linalg.norm(edge)
+            if out @ ((a + b) / 2 - centre) < 0:
+                out = -out
+            points += [np.array([p[0], 0.0, p[1]]) for p in (a + t * edge + offset * out
+                                                            for t in np.linspace(0.1, 0.9, 9))]
+    return points
+
+
+def _visible(point: np.ndarray, eye: np.ndarray, corners: np.ndarray) -> bool:
+    """Whether the segment from ``point`` to ``eye`` misses every triangle (K, 3, 3)."""
+    d = eye - point
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    h = np.cross(d, e2)
+    a = (e1 * h).sum(1)
+    ok = np.abs(a) > 1e-12
+    f = 1.0 / np.where(ok, a, 1.0)
+    s = point - corners[:, 0]
+    u = f * (s * h).sum(1)
+    q = np.cross(s, e1)
+    v = f * (q @ d)
+    t = f * (e2 * q).sum(1)
+    return not (ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9) & (t < 1)).any()
+
+
+def _pixel(point: np.ndarray, camera, width: int, height: int) -> tuple[int, int]:
+    """(row, column) of the pixel ``point`` projects into (top row first, as images are)."""
+    from hemirad.output.render import camera_basis
+
+    e = camera_basis(camera) @ (point - np.asarray(camera.position))
+    f = 1.0 / math.tan(math.radians(camera.fov) / 2)
+    x, y = f * height / width * e[0] / -e[2], f * e[1] / -e[2]
+    return int((1 - y) / 2 * height), int((x + 1) / 2 * width)
+
+
+def beside_blocks_errors(contacts: bool, element_size: float) -> np.ndarray:
+    """Relative errors of the converged Cornell box's view against the reference at the
+    pixels of floor points 1 cm outside the blocks that are visible and wholly floor."""
+    from hemirad.evaluation import reference
+
+    scene = hemirad.load_scene("cornell_box")
+    scene.meshing.contacts = contacts  # set either way: the default is off
+    for obj in scene.objects:
+        if obj.name == "floor" or "block" in obj.name:
+            obj.element_size = element_size
+    result = hemirad.solve(scene, progress=None)
+    ref = reference.Reference.load(REFERENCES, "cornell_box")
+    camera = ref.camera
+    view = reference.radiance_view(result.mesh, result.vertex_radiosity(), camera)
+    mesh = result.mesh
+    on_floor = mesh.surface == mesh.surface_names.index("floor")
+    _, floor_share = reference.coverage(mesh, on_floor, camera)
+    height, width = ref.radiance.shape[:2]
+    corners = mesh.corners.numpy()
+    errors = []
+    for point in _floor_points_beside_blocks(10.0):  # millimetres
+        if not _visible(point, np.asarray(camera.position, dtype=np.float64), corners):
+            continue
+        row, col = _pixel(point, camera, width, height)
+        if floor_share[row, col] > 0.99:
+            errors.append(view[row, col].mean() / ref.radiance[row, col].mean() - 1)
+    return np.asarray(errors)
+
+
+@pytest.mark.slow
+def test_floor_beside_the_cornell_blocks_matches_the_reference():
+    """1 cm outside the blocks, with floor and blocks meshed at 1 cm: with contact meshing
+    most points are within 5% of the path tracer (measured: 20 of 26, mean error 3.9%);
+    without it, where floor elements straddle the footprints, most are not (11 of 26, 7.2%). (At the shipped 4 cm elements neither is
+    within 5%: the floor's radiosity changes too fast there for 4 cm elements; see the
+    README.)"""
+    conforming = beside_blocks_errors(True, 10.0)
+    straddling = beside_blocks_errors(False, 10.0)
+    assert len(conforming) >= 20
+    within = (np.abs(conforming) <= 0.05).mean()
+    assert within >= 0.7, conforming
+    assert (np.abs(straddling) <= 0.05).mean() < 0.6, straddling
+    assert np.abs(conforming).mean() < 0.6 * np.abs(straddling).mean()
