@@ -114,29 +114,34 @@ def select_by_error(errors: torch.Tensor, areas: torch.Tensor, splittable: torch
     return chosen
 
 
-def regather(solver: "ProgressiveSolver", parent: torch.Tensor, split: torch.Tensor,
-             received: torch.Tensor) -> None:
+def regather(solver: "ProgressiveSolver", parent: torch.Tensor, split: torch.Tensor, received: torch.Tensor,
+             nodes: list[int]) -> None:
     """Give the children of split elements the light every node has sent them so far.
 
     Args:
         solver: continuing on the refined mesh (``adopt_split`` done), with patches.
         parent: (T',) the element of the previous mesh each element lies in.
-        split: (S,) the previous mesh's elements that were split.
+        split: (S,) the previous mesh's elements that were split (sorted).
         received: (S, 3) the power each of them had received (its B less its emission, times
             its area over its reflectance; 0 where it reflects nothing).
+        nodes: the nodes whose light reached some split element.
     """
     patches, state = solver.patches, solver.state
     changed = flatnonzero(torch.isin(parent, split))  # (C,) the children, first ones included
+    is_changed = torch.zeros(len(parent), dtype=torch.bool, device=parent.device)
+    is_changed[changed] = True
     which = torch.searchsorted(split, parent.index_select(0, changed))  # (C,) index into split
     gathered = torch.zeros(len(changed), 3, dtype=torch.float64, device=solver.device)
     tree = patches.tree
-    for node in flatnonzero(patches.sent.abs().sum(1) > 0).tolist():
-        F = solver.form_factors_of(node)  # rendered on the refined mesh and kept
+    for node in nodes:
+        # the node's row for the children only: the per-element scaling below takes the
+        # place of the row's own (``small_receiver_form_factors``), and later shots render
+        # the few rows they need in full
+        F = solver.shot_row(solver.render(node), among=is_changed)
         part = F.index_select(0, changed)[:, None] * patches.sent[node]  # (C, 3)
         near = solver.near_receivers_of(node, F, among=changed)
         if near is not None and len(near.rows):
-            # near the node, its light as its initial elements sent it (``nearfield``), unscaled:
-            # the per-element scaling below keeps the totals
+            # near the node, its light as its initial elements sent it (``nearfield``), unscaled
             lo, hi = int(tree.lo[node]), int(tree.hi[node])
             part[torch.searchsorted(changed, near.rows)] = near.weights.T @ patches.sent_by_leaf[lo:hi]
         gathered += part
@@ -153,6 +158,18 @@ def regather(solver: "ProgressiveSolver", parent: torch.Tensor, split: torch.Ten
     radiosity = torch.where(reflects, radiosity, state.radiosity.index_select(0, changed))
     state.unshot.index_add_(0, changed, radiosity - state.radiosity.index_select(0, changed))
     state.radiosity.index_copy_(0, changed, radiosity)
+
+
+def reaching_nodes(solver: "ProgressiveSolver", split: torch.Tensor) -> list[int]:
+    """The nodes that have shot and whose kept row (on the current mesh) reaches one of the
+    ``split`` elements; every node that shot whose row is no longer kept."""
+    patches, T = solver.patches, solver.mesh.num_elements
+    nodes = []
+    for node in flatnonzero(patches.sent.abs().sum(1) > 0).tolist():
+        row = solver.rows.get(node, T)
+        if row is None or bool((row.index_select(0, split) > 0).any()):
+            nodes.append(node)
+    return nodes
 
 
 @dataclass
@@ -207,5 +224,6 @@ def refine_mesh(solver: "ProgressiveSolver", refiner: "Refiner", chosen: torch.T
     before = solver.state.radiosity.index_select(0, split) - solver.emission.index_select(0, split)
     received = torch.where(rho > 0, before * mesh.areas.index_select(0, split)[:, None] / rho.clamp(min=1e-300),
                            torch.zeros_like(before))
+    nodes = reaching_nodes(solver, split)
     solver.adopt_split(new_mesh, parent)
-    regather(solver, parent, split, received)
+    regather(solver, parent, split, received, nodes)

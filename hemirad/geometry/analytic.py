@@ -70,7 +70,7 @@ def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: tor
     hemicube can see), then Lambert's formula is summed over the clipped polygon's edges.
 
     Args:
-        point: (3,); normal: (3,) unit; triangles: (T, 3, 3).
+        point: (3,), or (T, 1, 3) a point per triangle; normal: (3,) unit; triangles: (T, 3, 3).
     Returns:
         (T,) form factors, >= 0.
     """

@@ -53,7 +53,11 @@ def near_receivers(mesh: Mesh, members: torch.Tensor, sources: torch.Tensor, poi
     from_point = point_to_triangles(point, normal, corners)  # (n,)
     visibility = torch.where(from_point > 0, form_factors.index_select(0, rows) / from_point.clamp(min=1e-300),
                              torch.zeros_like(from_point))
-    weights = torch.stack([point_to_triangles(x, normal, corners) for x in sources]) * visibility  # (k, n)
+    k, n = len(sources), len(rows)
+    # every (source, receiver) pair in one call: each pair's point against its triangle
+    from_sources = point_to_triangles(sources[:, None, None, :].expand(k, n, 1, 3).reshape(k * n, 1, 3), normal,
+                                      corners[None].expand(k, n, 3, 3).reshape(k * n, 3, 3)).reshape(k, n)
+    weights = from_sources * visibility  # (k, n)
     return NearReceivers(rows, weights)
 
 

@@ -175,7 +175,8 @@ def visible_form_factors(view: HemicubeView, rows: torch.Tensor, corners: torch.
 
 
 def small_receiver_form_factors(view: HemicubeView, corners: torch.Tensor, areas: torch.Tensor,
-                                max_pixels: float = MAX_PIXELS, max_level: int = SAMPLE_LEVEL) -> torch.Tensor:
+                                max_pixels: float = MAX_PIXELS, max_level: int = SAMPLE_LEVEL,
+                                among: torch.Tensor | None = None) -> torch.Tensor:
     """(T,) the row F_sj of ``view`` (its ``form_factors`` being the pixel sums) with every
     receiver of an estimated footprint below ``max_pixels`` pixels given the form factor of
     its visible part (``visible_form_factors``, ``sample_levels`` up to ``max_level``), and
@@ -183,10 +184,13 @@ def small_receiver_form_factors(view: HemicubeView, corners: torch.Tensor, areas
 
     Args:
         corners: (T, 3, 3) the corners of the view's elements; areas: (T,) theirs.
+        among: (T,) bool, optional: correct only these receivers, and leave the row unscaled
+            (the caller scales what it needs; ``adaptive.answer`` per split element).
     """
     pixel_sums = view.form_factors
     footprint = footprint_pixels(view, corners, areas)
-    rows = flatnonzero((footprint > 0) & (footprint < max_pixels))
+    small = (footprint > 0) & (footprint < max_pixels)
+    rows = flatnonzero(small if among is None else small & among)
     if len(rows) == 0:
         return pixel_sums
     levels = sample_levels(footprint.index_select(0, rows), max_level)
@@ -202,6 +206,8 @@ def small_receiver_form_factors(view: HemicubeView, corners: torch.Tensor, areas
         share = torch.where(total > 0, sampled.index_select(0, near) / torch.where(total > 0, total, 1.0), 0.0)
         sampled = sampled.index_copy(0, near, closed * share)
     F = pixel_sums.index_copy(0, rows, sampled)
+    if among is not None:
+        return F
     hemicube_total, total = pixel_sums.sum(), F.sum()
     if float(total) <= 0.0:
         return pixel_sums

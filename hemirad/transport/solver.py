@@ -325,14 +325,15 @@ class ProgressiveSolver:
             self.rows.put(shooter, F)
         return F
 
-    def shot_row(self, view: HemicubeView) -> torch.Tensor:
+    def shot_row(self, view: HemicubeView, among: torch.Tensor | None = None) -> torch.Tensor:
         """(T,) the F_sj a shot from ``view`` (of the current mesh) hands out: its pixel sums, or
         with ``small_receivers`` closed_form those of the receivers covering few pixels
-        replaced (``smallreceivers.small_receiver_form_factors``)."""
+        replaced (``smallreceivers.small_receiver_form_factors``; with ``among`` (T,) bool,
+        only those, unscaled)."""
         if self.small_receivers == "pixels":
             return view.form_factors
         with self.profiler.phase("form_factors"):
-            return small_receiver_form_factors(view, self.mesh.corners, self.mesh.areas)
+            return small_receiver_form_factors(view, self.mesh.corners, self.mesh.areas, among=among)
 
     def render_and_keep(self, shooter: int) -> HemicubeView:
         """``render(shooter)``, its ``shot_row`` kept for the shooter's shots."""
