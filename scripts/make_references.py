@@ -112,7 +112,7 @@ def scaled(name: str, source: str, out: Path) -> dict:
     if not torch.allclose(mine, theirs * factor, rtol=1e-12, atol=0.0):
         raise SystemExit(f"{name}'s emissions are not {source}'s times one factor: render {name} instead")
     ref = reference.Reference.load(out, source)
-    info = {**ref.info, "scene": name, "geometry": reference.geometry_summary(scene, mesh),
+    info = {**ref.info, "scene": name, "geometry": reference.geometry_summary(scene),
             "derived": {"from": source, "factor": factor,
                         "how": f"{source}'s radiance times the factor: the scenes differ only in their "
                                f"emissions, all in this ratio, and light transport is linear in them"}}

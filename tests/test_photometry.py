@@ -109,16 +109,17 @@ solver: {resolution: 16, max_shots: 1}
 
 
 def test_an_office_lit_in_lumens():
-    """The bundled office_lighting scene: its panel's 6,000 lm over 0.72 m^2 and a desk grid
-    at EN 12464-1's spacing; solved, the desk centre is brighter than the floor under the
-    desk, and the grid's mean lies between its extremes."""
+    """The bundled office_lighting scene: its panel's 6,000 lm over 0.72 m^2, a desk grid and
+    the room's working plane at EN 12464-1's spacing; solved, the desk centre is brighter
+    than the floor under the desk, and the grid's mean lies between its extremes."""
     scene = hemirad.load_scene("office_lighting")
-    assert scene.units == "photometric" and [g.name for g in scene.grids] == ["desk"]
+    assert scene.units == "photometric" and [g.name for g in scene.grids] == ["desk", "room"]
     scene.solver.unshot_fraction = 0.02  # quick: the check is of the plumbing, not convergence
     result = hemirad.solve(scene)
     assert result.stats["flux"]["lamp"]["exitance"][0] == pytest.approx(6000 / 0.72)
     desk = result.grids["desk"]
     assert desk.layout.shape == (3, 6)
+    assert result.grids["room"].layout.shape == (6, 8)  # 4 x 3 m: p = 0.2 x 5^log10(4) = 0.526 m
     lux = dict(zip(result.sensors.names, result.sensors.lux.tolist()))
     assert lux["desk centre"] > 5 * lux["floor under desk"] > 0
     figures = desk.statistics

@@ -159,7 +159,7 @@ def geometry_summary(scene: Scene) -> dict:
     without contact meshing, which leaves out only what nothing can see, so a path tracer
     renders the same image either way)."""
     described = dataclasses.replace(scene, meshing=dataclasses.replace(scene.meshing, contacts=False))
-    mesh = build_mesh(described) if mesh is None else mesh
+    mesh = build_mesh(described)
     camera = dataclasses.asdict(scene.camera)
     emission = emission_table(scene, mesh).tolist()
     materials = {}
