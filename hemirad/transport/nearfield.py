@@ -57,7 +57,11 @@ def near_receivers(mesh: Mesh, members: torch.Tensor, sources: torch.Tensor, poi
     # every (source, receiver) pair in one call: each pair's point against its triangle
     from_sources = point_to_triangles(sources[:, None, None, :].expand(k, n, 1, 3).reshape(k * n, 1, 3), normal,
                                       corners[None].expand(k, n, 3, 3).reshape(k * n, 3, 3)).reshape(k, n)
-    weights = from_sources * visibility  # (k, n)
+    # Lambert's formula does not know sides: a source behind a receiver's plane (an element of
+    # a floor patch that lies under a block, below the block's side) would light its back
+    in_front = ((sources[:, None, :] - mesh.centroids.index_select(0, rows)[None]) *
+                mesh.normals.index_select(0, rows)[None]).sum(-1) > 0  # (k, n)
+    weights = torch.where(in_front, from_sources, torch.zeros_like(from_sources)) * visibility  # (k, n)
     return NearReceivers(rows, weights)
 
 
