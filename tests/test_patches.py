@@ -172,14 +172,17 @@ def test_a_split_emitter_draws_the_penumbra_a_centroid_shot_cannot():
     for split in (None, point_source_test(0.5)):
         tree = build_patches(mesh, np.full(T, 1.0))  # the emitter is one patch
         shooters = PatchShooters(tree, torch.device("cpu"), split)
-        solver = ProgressiveSolver(mesh, rho, E, 256, patches=shooters, overshoot=False, near_reach=0.0)
+        solver = ProgressiveSolver(mesh, rho, E, 256, patches=shooters, overshoot=False, near_reach=0.0,
+                                   small_receivers="closed_form")  # the default: no pixel luck on the floor
         try:
             solver.run(1, 0.0)  # the emitter's shot: nothing else reflects anything back
         finally:
             solver.close()
         error = solver.state.radiosity[on_floor, 0] / expected - 1
         errors[split is not None] = float(error[penumbra].abs().max())
-    assert errors[False] > 0.15 and errors[True] < 0.08, errors  # measured: 1.00 and 0.073
+    # measured: 1.00 and 0.050 (0.073 with the floor's pixel sums: the rest is the staircase of
+    # the emitter elements' centroids, and the shadow map's pixels at the blocker's edge)
+    assert errors[False] > 0.15 and errors[True] < 0.06, errors
 
 
 def test_an_object_can_set_its_own_patch_size():
