@@ -232,13 +232,13 @@ def _luminance(rgb: np.ndarray) -> np.ndarray:
 
 
 def gather(name: str, out: Path) -> None:
-    """Solve with hemirad (emitters reflecting, then not) and print the 256-hemicube gather
+    """Solve with hemirad (emitters not reflecting, as in RADIANCE, then as shipped) and print the 256-hemicube gather
     of its display radiosity at the reference's points beside RADIANCE's values."""
     from hemirad.transport.renderer import HemicubeRenderer
 
     reference = ir.IrradianceReference.load(out, name)
     columns = {}
-    for label, emitter_reflects in (("hemirad", True), ("no emitter reflection", False)):
+    for label, emitter_reflects in (("no emitter reflection", False), ("hemirad", True)):
         scene = hemirad.load_scene(name)
         scene.solver.unshot_fraction = 1e-4
         if not emitter_reflects:
@@ -258,19 +258,21 @@ def gather(name: str, out: Path) -> None:
         columns[label] = np.array(values)
         print(f"{name}: {label}: solved in {solve_seconds:.1f} s, {result.stats['shots']} shots, "
               f"{result.mesh.num_elements} elements")
-    ours, dark = columns["hemirad"], columns["no emitter reflection"]
+    shipped, ours = columns["hemirad"], columns["no emitter reflection"]
     ref = reference.irradiance
-    print(f"\n{name}: irradiance, RADIANCE against hemirad's gather (luminance; per channel the largest |difference|)")
-    print(f"| point | RADIANCE | hemirad | difference | per channel | emitter reflection adds |")
-    print("|---|---:|---:|---:|---:|---:|")
+    print(f"\n{name}: irradiance, RADIANCE against hemirad's gather: luminance, and per channel the "
+          f"largest difference")
+    print("| point | RADIANCE | +- | hemirad | difference | worst channel | emitters reflecting |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
     for i, point_name in enumerate(reference.names):
-        lum_ref, lum_ours, lum_dark = _luminance(ref[i]), _luminance(ours[i]), _luminance(dark[i])
+        lum_ref, lum_ours, lum_shipped = _luminance(ref[i]), _luminance(ours[i]), _luminance(shipped[i])
+        noise = _luminance(reference.standard_error[i]) / lum_ref
         channel = ours[i] / ref[i] - 1
         worst = channel[np.argmax(np.abs(channel))]
-        print(f"| {point_name} | {lum_ref:.5g} | {lum_ours:.5g} | {100 * (lum_ours / lum_ref - 1):+.2f}% | "
-              f"{100 * worst:+.2f}% | {100 * (lum_ours / lum_dark - 1):+.3f}% |")
-    dark_diff = _luminance(dark) / _luminance(ref) - 1
-    print(f"without emitter reflection: differences {', '.join(f'{100 * d:+.2f}%' for d in dark_diff)}")
+        print(f"| {point_name} | {lum_ref:.4g} | {100 * noise:.2f}% | {lum_ours:.4g} | "
+              f"{100 * (lum_ours / lum_ref - 1):+.2f}% | {100 * worst:+.2f}% | {100 * (lum_shipped / lum_ref - 1):+.2f}% |")
+    lift = _luminance(shipped) / _luminance(ours) - 1
+    print(f"the emitters' reflection raises the points by {100 * lift.min():.2f}% to {100 * lift.max():.2f}% (luminance)")
 
 
 def main(argv=None) -> int:
