@@ -268,6 +268,9 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3, help="adaptive solves; the median is reported")
     parser.add_argument("--no-profile", dest="profile", action="store_false", help="skip the profiled solve")
     parser.add_argument("--quick", action="store_true", help="a smoke test: small sizes, few shots")
+    parser.add_argument("--convergence-only", action="store_true",
+                        help="only the convergence table and the converged Fig. 6(c)-class solve, written to "
+                             "--out (default figures/bench_convergence.md)")
     args = parser.parse_args()
     device = select_device(args.device)
     GLContext.get(gpu=device.type == "cuda")
@@ -280,6 +283,13 @@ def main() -> None:
         adaptive_args = (args.threshold, 100, args.resolution, device)
         targets, shots = [1000, 10000, 100000, 1000000], args.shots
     print(machine(device), flush=True)
+    if args.convergence_only:
+        out = args.out if args.out != ROOT / "figures" / "bench.md" else ROOT / "figures" / "bench_convergence.md"
+        lines = [*convergence(CONVERGENCE_SCENES, CONVERGENCE_TARGETS, device), "", *converged_adaptive(device)]
+        out.write_text("\n".join(["# Convergence", "", f"Made by `python scripts/bench.py --convergence-only` on: "
+                                   f"{machine(device)}.", "", *lines, ""]))
+        print(f"\nwrote {out}")
+        return
     run, adaptive_lines = adaptive(*adaptive_args, repeat=1 if args.quick else max(args.repeat, 1))
     print("\n".join(adaptive_lines), "\n", flush=True)
     profile_lines = profile(*adaptive_args) if args.profile else []
