@@ -54,7 +54,7 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
                              cache_bytes=int(options.cache_mb * (1 << 20)), patches=patches,
                              overshoot=options.overshoot, near_reach=NEAR_REACH,
                              refine_shots=scene.refine.shots if refiner is not None else None, device=device,
-                             small_receivers=options.small_receivers)
+                             small_receivers=scene.refine.resolved_small_receivers(options.small_receivers))
 
 
 def patch_sizes(scene: Scene, mesh: Mesh) -> np.ndarray:

@@ -122,8 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "x,y,z,nx,ny,nz[,name] (a header line and # comments allowed); writes OUT/sensors.csv")
     parser.add_argument("--small-receivers", choices=SMALL_RECEIVER_CHOICES,
                         help="form factors of receivers that cover few hemicube pixels: closed_form, "
-                             "Lambert's closed form times the visibility the hemicube finds, or pixels, "
-                             "their pixels' sum as in the paper (solver.small_receivers)")
+                             "Lambert's closed form times the visibility the hemicube finds; pixels, "
+                             "their pixels' sum as in the paper; auto (the default), closed_form when "
+                             "refining, else pixels (solver.small_receivers)")
     parser.add_argument("--device", type=_device,
                         help="where the solve runs (solver.device): " +
                              "; ".join(f"{name}, {meaning}" for name, meaning in DEVICES.items()))

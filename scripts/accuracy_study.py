@@ -243,6 +243,7 @@ def converged_study(scenes, log=print) -> list[dict]:
         for factor in CONVERGED_UNIFORM:
             scene = shipped.with_element_sizes_scaled(factor)
             scene.solver.unshot_fraction = CONVERGED_UNSHOT
+            scene.solver.small_receivers = "closed_form"  # as the answer's runs (auto: closed_form when refining)
             start = time.perf_counter()
             solver = make_solver(scene)
             try:
@@ -282,7 +283,7 @@ def write_converged_table(path: Path, rows: list[dict]) -> None:
     machine = f"{platform.machine()}, {platform.system()}, 1 torch thread, {GLContext.renderer_name()}"
     lines = ["# Converged: uniform meshes against refinement judged on the answer", "",
              f"Made by `python scripts/accuracy_study.py --converged` on {machine}. The default configuration "
-             f"(patches, overshooting, hemicube 128), every run converged to {CONVERGED_UNSHOT:g} unshot power; "
+             f"(patches, overshooting, hemicube 128; small receivers by their closed form in every run), every run converged to {CONVERGED_UNSHOT:g} unshot power; "
              "`uniform x f`: the shipped element sizes times f, no refinement; `answer from x f`: that mesh, "
              "then rounds of `refine.criterion: answer` (pattern 2, each round at most doubling the elements), "
              "a row after each round with the seconds from the start. relMSE as in the study above; "

@@ -287,7 +287,11 @@ def test_kept_rows_are_the_corrected_ones():
 
 def test_the_option_is_read_checked_and_the_paper_keeps_pixels(tmp_path):
     scene = hemirad.load_scene("floating_coarse")
-    assert scene.solver.small_receivers == "closed_form"
+    assert scene.solver.small_receivers == "auto"
+    assert scene.refine.resolved_small_receivers("auto") == "pixels"  # no refinement: no small receivers
+    scene.refine.pattern = "pattern2"
+    assert scene.refine.resolved_small_receivers("auto") == "closed_form"
+    assert scene.refine.resolved_small_receivers("pixels") == "pixels"
     scene.solver.paper()
     assert scene.solver.small_receivers == "pixels"
     doc = {"element_size": 0.5,
@@ -296,7 +300,7 @@ def test_the_option_is_read_checked_and_the_paper_keeps_pixels(tmp_path):
                        {"type": "quad", "material": "lamp",
                         "corners": [[1, 2.49, 1], [2, 2.49, 1], [2, 2.49, 2], [1, 2.49, 2]]}],
            "camera": {"position": [2, 1.5, 0.2], "look_at": [2, 1, 4]}}
-    for value in ("pixels", "closed_form", "exact"):
+    for value in ("auto", "pixels", "closed_form", "exact"):
         path = tmp_path / f"{value}.yaml"
         path.write_text(yaml.safe_dump({**doc, "solver": {"small_receivers": value}}, sort_keys=False))
         if value != "exact":
@@ -305,7 +309,7 @@ def test_the_option_is_read_checked_and_the_paper_keeps_pixels(tmp_path):
         with pytest.raises(SceneError) as error:
             hemirad.load_scene(path)
         message = str(error.value)
-        assert "solver.small_receivers" in message and "pixels, closed_form" in message and path.name in message
+        assert "solver.small_receivers" in message and "auto, pixels, closed_form" in message and path.name in message
 
 
 def test_the_command_line_option_sets_it_and_refuses_other_values(capsys):

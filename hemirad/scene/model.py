@@ -34,9 +34,10 @@ MIN_EMISSION, MAX_EMISSION = 1e-20, 1e20
 #: What a scene's ``units`` may be: what its emissions (and so its results) are measured in.
 UNITS = ("radiometric", "photometric")
 #: How receivers that cover few hemicube pixels get their form factors: what a scene's
-#: ``solver.small_receivers`` (and ``--small-receivers``) may be: their pixels' sum, or the
-#: closed form times the visibility the hemicube finds (``transport.smallreceivers``).
-SMALL_RECEIVER_CHOICES = ("pixels", "closed_form")
+#: ``solver.small_receivers`` (and ``--small-receivers``) may be: their pixels' sum, the closed
+#: form times the visibility the hemicube finds (``transport.smallreceivers``), or ``auto``:
+#: the closed form when refinement makes elements small, else the pixels (``resolved_small_receivers``).
+SMALL_RECEIVER_CHOICES = ("auto", "pixels", "closed_form")
 
 
 @dataclass
@@ -160,7 +161,7 @@ class SolverOptions:
     cache_mb: float = 256.0  # memory for form-factor rows kept between a shooter's shots
     # How receivers covering few hemicube pixels get their form factors: one of
     # SMALL_RECEIVER_CHOICES (hemirad.transport.smallreceivers).
-    small_receivers: str = "closed_form"
+    small_receivers: str = "auto"
 
     def paper(self) -> None:
         """Shoot as the paper does: every element, from its centroid, no overshooting, each
@@ -192,6 +193,15 @@ class RefineOptions:
     @property
     def enabled(self) -> bool:
         return self.pattern != NO_REFINEMENT
+
+    def resolved_small_receivers(self, small_receivers: str) -> str:
+        """``solver.small_receivers`` made definite: ``auto`` is ``closed_form`` with refinement
+        (elements under a pixel's footprint are what it mends: the refined penumbrae's grain)
+        and ``pixels`` without (measured on the unrefined bundled scenes: within 8% of the same
+        error at 1.15-1.8 times the time)."""
+        if small_receivers != "auto":
+            return small_receivers
+        return "closed_form" if self.enabled else "pixels"
 
     @property
     def by_answer(self) -> bool:
