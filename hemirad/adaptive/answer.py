@@ -12,8 +12,8 @@ and a threshold cannot be tuned to a mesh size. Here the judge is the solution i
 2. **Split** the elements of the largest squared error times area (their share of the
    image's squared error) first, as many as the round's element budget allows.
 3. **Regather.** A split element's children inherit its radiosity; each child then gets
-   what every shooter has sent so far reaching it: each node that shot is rendered on the
-   refined mesh (its row is kept for the shots that follow) and its accumulated power
+   what every shooter has sent so far reaching it: each node whose light reached a split
+   element is rendered on the refined mesh and its accumulated power
    (``PatchShooters.sent``) is spread by its form factors to the children, as its shots
    would have spread it. Per split element the children's total is scaled to what the
    element had received, so the redistribution moves light between siblings and creates
