@@ -154,23 +154,82 @@ def solved_as_radiance_sees_it(name: str):
     return hemirad.solve(scene)
 
 
-@pytest.mark.parametrize("name", [
-    "cornell_box",
-    # measured: floor_by_chair 3.4% low (3.3% with a 512 or 1024 hemicube: the solution's
-    # error, not the gather's); not yet explained (README, Irradiance at points)
-    pytest.param("office", marks=pytest.mark.xfail(strict=True, reason="floor_by_chair 3.4% low")),
-])
+def office_lamp_direct(point, normal, samples=(1200, 600)) -> float:
+    """The office lamp's direct irradiance at ``point`` (grey: its emission is grey), by
+    quadrature over the lamp (``samples`` cells), each cell's ray tested against every box of
+    the scene: independent of hemicubes and of RADIANCE's source sampling."""
+    scene = hemirad.load_scene("office")
+    lamp = next(o for o in scene.objects if o.name == "lamp")
+    emission = next(m for m in scene.materials if m.name == lamp.material).emission[0]
+    c = np.asarray(lamp.corners, dtype=np.float64)
+    a = (np.arange(samples[0]) + 0.5) / samples[0]
+    b = (np.arange(samples[1]) + 0.5) / samples[1]
+    A, B = np.meshgrid(a, b)
+    u, v = c[1] - c[0], c[3] - c[0]
+    cells = c[0] + A.reshape(-1, 1) * u + B.reshape(-1, 1) * v  # (n, 3)
+    lamp_normal = np.cross(u, v) / np.linalg.norm(np.cross(u, v))
+    d = cells - np.asarray(point)
+    r2 = (d * d).sum(1)
+    cos_here = np.clip(d @ np.asarray(normal), 0, None) / np.sqrt(r2)
+    cos_there = np.clip(-(d @ lamp_normal), 0, None) / np.sqrt(r2)
+    weight = cos_here * cos_there / (np.pi * r2) * np.linalg.norm(np.cross(u, v)) / len(cells)
+    seen = np.ones(len(cells), dtype=bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for box in (o for o in scene.objects if type(o).__name__ == "Box"):
+            t0, t1 = (np.asarray(box.min) - point) / d, (np.asarray(box.max) - point) / d
+            near = np.nanmax(np.minimum(t0, t1), axis=1)
+            far = np.nanmin(np.maximum(t0, t1), axis=1)
+            seen &= ~((far >= np.maximum(near, 0.0)) & (near <= 1.0))
+    return float(emission * (weight * seen).sum())
+
+
+#: Points whose RADIANCE direct light is wrong, by this much (see the test below): there the
+#: comparison takes RADIANCE's indirect light plus the lamp's direct light by quadrature.
+DIRECT_OFF = {("office", "floor_by_chair"): 0.05}
+
+
+def test_the_office_reference_overestimates_the_lamp_beside_the_chair():
+    # At floor_by_chair the chair's back hides the far 40% of the lamp. RADIANCE's direct
+    # light there (-ab 0, every source shadow-tested) is 5% above the lamp's visible part
+    # integrated cell by cell, while hemirad's gather of the lamp alone is within 0.5% of it.
+    from hemirad.lighting.sensors import irradiance_at
+
+    reference = ir.IrradianceReference.load(REFERENCES, "office")
+    i = reference.names.index("floor_by_chair")
+    point, normal = reference.points[i], reference.normals[i]
+    exact = office_lamp_direct(point, normal)
+    assert exact == pytest.approx(office_lamp_direct(point, normal, (600, 300)), rel=2e-3)  # converged
+    assert reference.direct[i][0] / exact - 1 > 0.04
+    scene = hemirad.load_scene("office")
+    mesh = build_mesh(scene)
+    emission = scene.emission_table()[mesh.material]  # the lamp alone, as its own radiosity
+    ours = irradiance_at(mesh, emission, torch.tensor(point[None]), torch.tensor(normal[None]))
+    assert float(ours[0, 0]) == pytest.approx(exact, rel=5e-3)
+
+
+def expected_irradiance(name: str, reference) -> np.ndarray:
+    """(N, 3) what each point should read: RADIANCE's, but at the points of ``DIRECT_OFF``
+    its indirect light plus the direct light by quadrature."""
+    expected = np.array(reference.irradiance, dtype=np.float64)
+    for (scene, point_name), _ in DIRECT_OFF.items():
+        if scene == name:
+            i = reference.names.index(point_name)
+            expected[i] += office_lamp_direct(reference.points[i], reference.normals[i]) - reference.direct[i]
+    return expected
+
+
+@pytest.mark.parametrize("name", SCENES)
 def test_sensor_irradiance_matches_radiance(name):
     from hemirad.lighting.sensors import irradiance_at
 
-    assert set(SCENES) == {"cornell_box", "office"}
     reference = ir.IrradianceReference.load(REFERENCES, name)
     result = solved_as_radiance_sees_it(name)
     ours = np.asarray(irradiance_at(result.mesh, result.display_radiosity, torch.tensor(reference.points),
                                     torch.tensor(reference.normals), resolution=256), dtype=np.float64)
     assert ours.shape == reference.irradiance.shape
     failures = []
-    for point_name, mine, theirs, noise in zip(reference.names, ours, reference.irradiance, reference.standard_error):
+    for point_name, mine, theirs, noise in zip(reference.names, ours, expected_irradiance(name, reference),
+                                               reference.standard_error):
         lum = luminance(mine) / luminance(theirs) - 1
         channel = mine / theirs - 1
         if abs(lum) > TOLERANCE or (np.abs(channel) > TOLERANCE).any():
