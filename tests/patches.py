@@ -34,6 +34,33 @@ def closed_box(size=1.0, element_size=1.0):
     return quads_mesh(faces, [element_size] * 6)
 
 
+def open_box(element_size=1.0):
+    """``closed_box`` without its top (the face at y = 1, whose normal is -y): light escapes."""
+    mesh = closed_box(element_size=element_size)
+    rows = torch.nonzero(mesh.normals[:, 1] > -0.5).reshape(-1)
+    return Mesh(mesh.vertices, mesh.triangles[rows], mesh.surface[rows], mesh.material[rows], mesh.surface_names)
+
+
+def random_materials(T, seed, span, low, glowing, emission=(9.0, 5.0, 2.0)):
+    """(rho, E), each (T, 3) float64: reflectances uniform in [low, low + span) from ``seed``,
+    and the first ``glowing`` elements emitting ``emission``."""
+    rho = torch.rand(T, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * span + low
+    E = torch.zeros(T, 3, dtype=torch.float64)
+    E[:glowing] = torch.tensor(emission, dtype=torch.float64)
+    return rho, E
+
+
+def assert_power_balances(state, areas, reflectance, emission, emitted, rtol):
+    """What reached the receivers' fronts, recovered from their radiosities (A (B - E) / rho,
+    of which 1 - rho was absorbed), is the solver's absorbed power (to 1e-9), and absorbed +
+    unshot + escaped = ``emitted`` (3,) to ``rtol``. ``areas``: (T,); the rest (T, 3)."""
+    areas = areas[:, None]
+    absorbed = ((1 - reflectance) / reflectance * (state.radiosity - emission) * areas).sum(0)
+    unshot = (state.unshot * areas).sum(0)
+    torch.testing.assert_close(absorbed, state.absorbed, rtol=1e-9, atol=0)
+    torch.testing.assert_close(absorbed + unshot + state.escaped, emitted, rtol=rtol, atol=0)
+
+
 def refined_solve(scene_name: str, shots: int, resolution: int = 64, **solver_options):
     """A pattern-2 refining solve of a bundled scene for ``shots`` shots; returns the
     finished (closed) ProgressiveSolver, with ``solver_options`` (cull, relabel, bound)
