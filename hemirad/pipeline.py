@@ -63,15 +63,10 @@ def falsecolour_file(surface: str) -> str:
     return "falsecolour_" + re.sub(r"[^A-Za-z0-9._-]", "_", surface) + ".png"
 
 
-def grid_picture_file(name: str) -> str:
-    """The false-colour picture of the grid ``name``."""
-    return f"grid_{name}.png"
-
-
 def output_names(scene: Scene) -> list[str]:
     """Every file name a run of ``scene`` writes into its output folder (not the checkpoint)."""
     return [*OUTPUT_FILES.values(), *dict.fromkeys(falsecolour_file(name) for name in scene.falsecolour),
-            *survey.output_names(scene), *(grid_picture_file(g.name) for g in scene.grids)]
+            *survey.output_names(scene)]
 
 
 @dataclass
@@ -238,7 +233,7 @@ class Result:
         grid_pictures = {}
         for name, grid in self.grids.items():
             tables[f"grid {name}"] = (folder / grid.file_name, grid.table())
-            grid_pictures[f"grid picture {name}"] = (folder / grid_picture_file(name), grid)
+            grid_pictures[f"grid picture {name}"] = (folder / survey.grid_file_name(name, ".png"), grid)
         vertex = self.vertex_radiosity()
         check_finite(self, vertex)  # before anything is written
         start = time.perf_counter()

@@ -275,7 +275,8 @@ def main() -> None:
     device = select_device(args.device)
     GLContext.get(gpu=device.type == "cuda")
     if args.out is None:
-        args.out = ROOT / "figures" / ("bench_cuda.md" if device.type == "cuda" else "bench.md")
+        name = "bench_convergence" if args.convergence_only else "bench"
+        args.out = ROOT / "figures" / (f"{name}_cuda.md" if device.type == "cuda" else f"{name}.md")
     if args.quick:
         args.out = Path("bench_quick.md")
         adaptive_args, targets, shots = (1e-3, 10, 64, device), [1000, 10000], 3
@@ -284,11 +285,10 @@ def main() -> None:
         targets, shots = [1000, 10000, 100000, 1000000], args.shots
     print(machine(device), flush=True)
     if args.convergence_only:
-        out = args.out if args.out != ROOT / "figures" / "bench.md" else ROOT / "figures" / "bench_convergence.md"
         lines = [*convergence(CONVERGENCE_SCENES, CONVERGENCE_TARGETS, device), "", *converged_adaptive(device)]
-        out.write_text("\n".join(["# Convergence", "", f"Made by `python scripts/bench.py --convergence-only` on: "
-                                   f"{machine(device)}.", "", *lines, ""]))
-        print(f"\nwrote {out}")
+        args.out.write_text("\n".join(["# Convergence", "", f"Made by `python scripts/bench.py --convergence-only` "
+                                        f"on: {machine(device)}.", "", *lines, ""]))
+        print(f"\nwrote {args.out}")
         return
     run, adaptive_lines = adaptive(*adaptive_args, repeat=1 if args.quick else max(args.repeat, 1))
     print("\n".join(adaptive_lines), "\n", flush=True)

@@ -172,6 +172,11 @@ def reaching_nodes(solver: "ProgressiveSolver", split: torch.Tensor) -> list[int
     return nodes
 
 
+#: The share of the elements a round may split: with pattern 2 (4 children) a round at most
+#: doubles the mesh, before grading.
+ROUND_SHARE = 1.0 / 3.0
+
+
 @dataclass
 class RoundReport:
     round: int
@@ -183,8 +188,7 @@ class RoundReport:
 
 def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elements: int, tolerance: float,
                      rounds: int, shoot_on: Callable[[], None],
-                     report: Callable[[RoundReport], None] | None = None,
-                     fraction: float = 1.0 / 3.0) -> list[RoundReport]:
+                     report: Callable[[RoundReport], None] | None = None) -> list[RoundReport]:
     """Alternate shooting to the stopping rule (``shoot_on``) and refining where the answer
     is worst, until the estimated relative error is under ``tolerance``, the mesh has
     ``max_elements``, or ``rounds`` refinements were made. Each round may at most double
@@ -201,7 +205,7 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
         estimate = estimated_relative_error(mesh, shown, errors)
         reports.append(RoundReport(index, mesh.num_elements, 0, estimate, solver.state.shots))
         room = (max_elements - mesh.num_elements) // (refiner.children - 1)
-        count = min(room, int(fraction * mesh.num_elements))
+        count = min(room, int(ROUND_SHARE * mesh.num_elements))
         if index == rounds or estimate <= tolerance or count <= 0:
             break
         splittable = refiner.splittable(mesh, torch.empty(0, dtype=torch.int64, device=solver.device))

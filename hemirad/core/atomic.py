@@ -26,26 +26,17 @@ def write_atomically(path, write: Callable[[BinaryIO], None]) -> None:
     Raises:
         OSError: the folder or the file cannot be written (the temporary file is removed).
     """
-    path = Path(path)
-    tmp = temporary_path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+    def write_file(tmp: Path) -> None:
         with open(tmp, "wb") as f:  # opened normally, so the file gets the usual permissions
             write(f)
-            f.flush()
-            os.fsync(f.fileno())  # on disk before the rename makes it the file
-        os.replace(tmp, path)
-        tmp = None
-    finally:
-        if tmp is not None:  # interrupted or failed: the previous file stays as it was
-            with contextlib.suppress(OSError):
-                tmp.unlink()
+
+    write_atomically_by_name(path, write_file)
 
 
 def write_atomically_by_name(path, write: Callable[[Path], None]) -> None:
-    """``write_atomically`` for a writer that opens the file itself, by name (a library
-    that takes a path, not a file object): ``write(temporary_path)``, then the same
-    durable move over ``path``.
+    """Call ``write(temporary_path)`` (a writer that opens the file itself, by name: a
+    library that takes a path, not a file object), make the file durable, and move it
+    over ``path``.
 
     Raises:
         OSError: the folder or the file cannot be written (the temporary file is removed).

@@ -94,13 +94,15 @@ class GridReadings:
         return GRID_COLUMNS, out
 
 
-def grid_file_name(name: str) -> str:
-    return f"grid_{name}.csv"
+def grid_file_name(name: str, suffix: str = ".csv") -> str:
+    """A grid's file: its table (``.csv``), or its false-colour picture (``.png``)."""
+    return f"grid_{name}{suffix}"
 
 
 def output_names(scene: Scene) -> list[str]:
     """The files a run of ``scene`` writes for its sensors and grids."""
-    return (["sensors.csv"] if scene.sensors else []) + [grid_file_name(g.name) for g in scene.grids]
+    return (["sensors.csv"] if scene.sensors else []) + [grid_file_name(g.name, suffix) for g in scene.grids
+                                                          for suffix in (".csv", ".png")]
 
 
 def blind_grids(scene: Scene, mesh: Mesh, resolution: int = SENSOR_RESOLUTION) -> list[Grid]:

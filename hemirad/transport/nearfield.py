@@ -45,8 +45,10 @@ def near_receivers(mesh: Mesh, members: torch.Tensor, sources: torch.Tensor, poi
     elements ``among`` when given."""
     radius = float((mesh.corners_of(members).reshape(-1, 3) - point).norm(dim=1).max())
     candidates = torch.arange(mesh.num_elements, device=point.device) if among is None else among
+    outside = torch.ones(mesh.num_elements, dtype=torch.bool, device=point.device)
+    outside[members] = False
     near = (mesh.centroids.index_select(0, candidates) - point).norm(dim=1) < reach * radius
-    near &= ~torch.isin(candidates, members)
+    near &= outside.index_select(0, candidates)
     near &= form_factors.index_select(0, candidates) > 0  # what G does not see at all stays unseen (occluded, or behind)
     rows = candidates[near]
     corners = mesh.corners_of(rows)  # (n, 3, 3)

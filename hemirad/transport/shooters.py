@@ -150,7 +150,7 @@ class PatchShooters:
         self.cuts = {int(p): part.tolist() for p, part in zip(patches, torch.split(nodes, sizes.tolist()))}
         self.shooter_splits = int(state["shooter_splits"])
         for name in ("sent", "sent_by_leaf"):
-            rows, want = state[name], getattr(self, name)
+            rows, want = state.get(name), getattr(self, name)
             if not isinstance(rows, torch.Tensor) or rows.shape != want.shape or rows.dtype != torch.float64:
                 raise ValueError(f"patches.{name} must be a {tuple(want.shape)} float64 tensor")
         self.sent, self.sent_by_leaf = state["sent"].to(device), state["sent_by_leaf"].to(device)
