@@ -40,8 +40,8 @@ import numpy as np
 import torch
 
 import hemirad
-from hemirad.core.colour import REC709_LUMINANCE
 from hemirad.evaluation import irradiance_reference as ir
+from hemirad.evaluation.metrics import luminance
 from hemirad.evaluation.reference import geometry_summary
 from hemirad.scene.meshing import build_mesh
 
@@ -227,10 +227,6 @@ def _rgb(values) -> str:
     return " ".join(f"{v:9.4g}" for v in values)
 
 
-def _luminance(rgb: np.ndarray) -> np.ndarray:
-    return rgb @ np.array(REC709_LUMINANCE)
-
-
 def gather(name: str, out: Path) -> None:
     """Solve with hemirad (emitters not reflecting, as in RADIANCE, then as shipped) and print the 256-hemicube gather
     of its display radiosity at the reference's points beside RADIANCE's values."""
@@ -265,13 +261,13 @@ def gather(name: str, out: Path) -> None:
     print("| point | RADIANCE | +- | hemirad | difference | worst channel | emitters reflecting |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     for i, point_name in enumerate(reference.names):
-        lum_ref, lum_ours, lum_shipped = _luminance(ref[i]), _luminance(ours[i]), _luminance(shipped[i])
-        noise = _luminance(reference.standard_error[i]) / lum_ref
+        lum_ref, lum_ours, lum_shipped = luminance(ref[i]), luminance(ours[i]), luminance(shipped[i])
+        noise = luminance(reference.standard_error[i]) / lum_ref
         channel = ours[i] / ref[i] - 1
         worst = channel[np.argmax(np.abs(channel))]
         print(f"| {point_name} | {lum_ref:.4g} | {100 * noise:.2f}% | {lum_ours:.4g} | "
               f"{100 * (lum_ours / lum_ref - 1):+.2f}% | {100 * worst:+.2f}% | {100 * (lum_shipped / lum_ref - 1):+.2f}% |")
-    lift = _luminance(shipped) / _luminance(ours) - 1
+    lift = luminance(shipped) / luminance(ours) - 1
     print(f"the emitters' reflection raises the points by {100 * lift.min():.2f}% to {100 * lift.max():.2f}% (luminance)")
 
 

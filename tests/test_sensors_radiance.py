@@ -21,8 +21,8 @@ import pytest
 import torch
 
 import hemirad
-from hemirad.core.colour import REC709_LUMINANCE
 from hemirad.evaluation import irradiance_reference as ir
+from hemirad.evaluation.metrics import luminance
 from hemirad.evaluation.reference import geometry_summary
 from hemirad.geometry.analytic import point_to_polygon
 from hemirad.scene.meshing import build_mesh
@@ -32,10 +32,6 @@ REFERENCES = Path(__file__).resolve().parent / "references"
 SCENES = ("cornell_box", "office")
 #: The issue's tolerance: every point, luminance and each channel.
 TOLERANCE = 0.02
-
-
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    return np.asarray(rgb) @ np.array(REC709_LUMINANCE)
 
 
 @pytest.mark.parametrize("name", SCENES)
