@@ -1,0 +1,104 @@
+"""A real scene measured against path-traced values at its surface points: time, peak memory
+and error of a converged solve. For reading, never for asserting.
+
+    python scripts/peer_room.py ROOM_DIR [--scene scene.yaml] [--points POINTS.npz]
+        [--unshot-fraction 1e-3] [--patch-size auto] [--resolution N] [--profile]
+
+ROOM_DIR holds a scene in hemirad's format and an ``.npz`` of surface points (``points``,
+``normals`` (N, 3), path-traced radiosity ``B`` (N, 3) and its standard error ``se``), such as
+the furnished room of a public radiosity program that the project compares against (RRV's
+room3, converted). Prints the solve's seconds, shots, hemicubes, patches, elements, peak
+resident memory (and the part of it that importing torch alone takes), the power that
+escaped through back faces, and the relative error of the luminance at the points (median,
+90th percentile, largest, and the mean signed error: a bias).
+"""
+from __future__ import annotations
+
+import argparse
+import cProfile
+import pstats
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+RSS_AFTER_IMPORT_MB = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+import hemirad  # noqa: E402  (imported after the measurement above)
+from hemirad.assembly import make_solver  # noqa: E402
+from hemirad.evaluation.metrics import luminance  # noqa: E402
+from hemirad.evaluation.surface_points import elements_at  # noqa: E402
+
+
+def measure(scene_path: Path, points_path: Path, args) -> dict:
+    scene = hemirad.load_scene(scene_path)
+    options = scene.solver
+    options.unshot_fraction = args.unshot_fraction
+    if args.patch_size is not None:
+        options.patch_size = None if args.patch_size == "none" else (
+            "auto" if args.patch_size == "auto" else float(args.patch_size))
+    if args.resolution:
+        options.resolution = args.resolution
+    torch.set_num_threads(1)
+    start = time.perf_counter()
+    solver = make_solver(scene)
+    profile = cProfile.Profile() if args.profile else None
+    try:
+        if profile:
+            profile.enable()
+        state = solver.run(options.max_shots, options.unshot_fraction)
+        if profile:
+            profile.disable()
+    finally:
+        solver.close()
+    seconds = time.perf_counter() - start
+    data = np.load(points_path)
+    points = torch.as_tensor(data["points"], dtype=torch.float64)
+    normals = torch.as_tensor(data["normals"], dtype=torch.float64)
+    where = elements_at(solver.mesh.to("cpu"), points, normals)
+    found = (where >= 0).numpy()
+    ours = luminance(state.radiosity.cpu().numpy()[where.numpy()[found]])
+    truth = luminance(data["B"][found])
+    error = ours / truth - 1
+    emitted = float((solver.emission * solver.areas[:, None]).sum())
+    report = {
+        "seconds": seconds, "shots": state.shots, "hemicubes": solver.renderer.renders,
+        "patches": solver.patches.tree.num_patches if solver.patches is not None else None,
+        "elements": solver.mesh.num_elements, "unshot": solver.unshot_fraction,
+        "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "import_mb": RSS_AFTER_IMPORT_MB, "escaped": float(state.escaped.sum()) / emitted,
+        "points": int(found.sum()), "of": len(found),
+        "median": float(np.median(np.abs(error))), "p90": float(np.percentile(np.abs(error), 90)),
+        "max": float(np.abs(error).max()), "bias": float(error.mean()),
+    }
+    if profile:
+        pstats.Stats(profile).sort_stats("tottime").print_stats(25)
+    return report
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("room", type=Path, help="folder of the scene and its points")
+    parser.add_argument("--scene", default=None, help="the scene file in ROOM (default: the one .yaml there)")
+    parser.add_argument("--points", type=Path, default=None, help="the points (default: the one .npz beside ROOM)")
+    parser.add_argument("--unshot-fraction", type=float, default=1e-3)
+    parser.add_argument("--patch-size", default=None, help="auto, none or a side length (default: the scene's)")
+    parser.add_argument("--resolution", type=int, default=None)
+    parser.add_argument("--profile", action="store_true", help="print where the solve's time goes")
+    args = parser.parse_args()
+    scene_path = args.room / args.scene if args.scene else next(args.room.glob("*.yaml"))
+    points_path = args.points or next(p for p in sorted(args.room.parent.glob("*.npz")))
+    r = measure(scene_path, points_path, args)
+    print(f"{scene_path}: {r['elements']:,} elements, {r['patches']} patches")
+    print(f"converged to {r['unshot']:.1e} unshot in {r['seconds']:.1f} s: {r['shots']:,} shots, "
+          f"{r['hemicubes']:,} hemicubes; peak memory {r['peak_mb']:.0f} MB "
+          f"({r['import_mb']:.0f} MB of it importing torch and numpy)")
+    print(f"escaped through back faces: {100 * r['escaped']:.2f}% of the emitted power")
+    print(f"luminance error at {r['points']} of {r['of']} points: median {100 * r['median']:.1f}%, "
+          f"90th percentile {100 * r['p90']:.1f}%, largest {100 * r['max']:.1f}%, mean {100 * r['bias']:+.1f}%")
+
+
+if __name__ == "__main__":
+    main()
