@@ -12,7 +12,7 @@ from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patches import build_patches, element_sides
 from hemirad.lighting.photometry import emission_table
 from hemirad.scene.meshing import build_mesh, surface_objects
-from hemirad.scene.model import Scene
+from hemirad.scene.model import MeshFile, Scene
 from hemirad.transport.shooters import PatchShooters, either, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver
 
@@ -45,7 +45,8 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
     options = scene.solver
     patches = None
     if options.patch_size not in (None, "none"):
-        tree = build_patches(mesh, patch_sizes(scene, mesh))
+        owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]
+        tree = build_patches(mesh, patch_sizes(scene, mesh), owner)
         test = hidden_centroid_test()
         if options.shooter_split is not None:
             test = either(test, point_source_test(options.shooter_split))
@@ -64,5 +65,8 @@ def patch_sizes(scene: Scene, mesh: Mesh) -> np.ndarray:
     # per object: a multiple of the element side (auto) and a length (a number), one of them 0
     factor = np.asarray([AUTO_PATCH_ELEMENTS if size == "auto" else 0.0 for size in asked])
     length = np.asarray([0.0 if size in ("auto", "none", None) else float(size) for size in asked])
+    # A mesh file's triangles may be finer than its element_size (they are split only when
+    # coarser): its auto patches are about 2 x 2 elements of that size, not of its triangles
+    nominal = np.asarray([obj.element_size if isinstance(obj, MeshFile) else 0.0 for obj in scene.objects])
     obj = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]  # (T,)
-    return factor[obj] * element_sides(mesh) + length[obj]
+    return factor[obj] * np.maximum(element_sides(mesh), nominal[obj]) + length[obj]

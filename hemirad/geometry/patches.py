@@ -2,8 +2,8 @@
 may shoot from instead (docs/DESIGN.md §1.4).
 
 A patch is the set of a planar surface's elements whose centroids fall into one square cell
-of side ``patch_size`` laid over that plane; an element of a curved surface is a patch of
-its own. Each patch is split recursively into quadrants (of its own bounding square in the
+of side ``patch_size`` laid over that plane; on a curved surface, a cap of the elements in
+one cube of side ``patch_size`` whose normals lie within ``CURVED_PATCH_CONE`` of each other. Each patch is split recursively into quadrants (of its own bounding square in the
 plane) down to single elements: the nodes of that tree are the shooters a patch may use
 where its centroid is a poor stand-in for its extent (``transport.shooters``).
 
@@ -61,6 +61,12 @@ class PatchTree:
         return self.child_ids[int(self.child_start[node]):int(self.child_start[node + 1])].tolist()
 
 
+# Degrees: the widest angle between the normals of one curved patch's elements and its largest
+# element's. At 25 degrees a hemicube along the patch's mean normal misplaces at most ~10% of a
+# member's cosine lobe (1 - cos 25 degrees) near its horizon.
+CURVED_PATCH_CONE = 25.0
+
+
 def element_sides(mesh: Mesh) -> np.ndarray:
     """(T,) each element's side: sqrt(2 A), the legs of the right isosceles triangles a
     square cell of that side is meshed into."""
@@ -75,17 +81,23 @@ def plane_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, np.cross(normal, u)
 
 
-def build_patches(mesh: Mesh, patch_size: np.ndarray) -> PatchTree:
+def build_patches(mesh: Mesh, patch_size: np.ndarray, owner: np.ndarray | None = None) -> PatchTree:
     """Group the elements of ``mesh`` into patches of about ``patch_size`` (T,) (a side length
     per element, 0 for an element that shoots on its own; a plane takes its elements'
-    median) and build each patch's quadrant tree."""
+    median) and build each patch's quadrant tree. ``owner`` (T,): the object each element
+    belongs to (default: its surface); a curved patch shoots as one only where no other
+    object passes through it (``_curved_cells``)."""
     centroids = mesh.centroids.cpu().numpy()
     normals = mesh.normals.cpu().numpy()
     areas = mesh.areas.cpu().numpy()
     corners = mesh.corners.cpu().numpy()
     edges = corners[:, 1] - corners[:, 0]
-    groups = _plane_cells(mesh.plane_ids.cpu().numpy(), centroids, normals, areas, np.asarray(patch_size))
-    builder = _TreeBuilder(centroids, normals, areas, edges)
+    patch_size = np.asarray(patch_size)
+    plane_ids = mesh.plane_ids.cpu().numpy()
+    groups, alone = _plane_cells(plane_ids, centroids, normals, areas, patch_size)
+    owner = mesh.surface.cpu().numpy() if owner is None else np.asarray(owner)
+    groups += _curved_cells(alone, owner, centroids, normals, areas, corners, patch_size)
+    builder = _TreeBuilder(centroids, normals, areas, edges, corners, plane_ids)
     roots, patch = [], np.empty(mesh.num_elements, dtype=np.int64)
     for index, (members, u, v) in enumerate(groups):
         patch[members] = index
@@ -94,19 +106,23 @@ def build_patches(mesh: Mesh, patch_size: np.ndarray) -> PatchTree:
 
 
 def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarray, areas: np.ndarray,
-                 patch_size: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The patches as (members (k,), plane axes u, v): per plane, the elements whose centroids
-    share a cell of the plane's square grid (its side the plane's median patch size, its
-    origin the lowest element centroid)."""
+                 patch_size: np.ndarray) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], np.ndarray]:
+    """The patches of the planes, as (members (k,), plane axes u, v): per plane, the elements
+    whose centroids share a cell of the plane's square grid (its side the plane's median patch
+    size, its origin the lowest element centroid); and (m,) the elements alone on their plane
+    (those of curved surfaces), left to ``_curved_cells``."""
     order = np.argsort(plane_ids, kind="stable")
     bounds = np.flatnonzero(np.diff(plane_ids[order])) + 1
-    out = []
+    out, alone = [], []
     for members in np.split(order, bounds):
+        if len(members) == 1:
+            alone.append(members)
+            continue
         normal = (normals[members] * areas[members, None]).sum(0)
         normal /= np.linalg.norm(normal)
         u, v = plane_axes(normal)
         size = float(np.median(patch_size[members]))
-        if len(members) == 1 or size <= 0:  # an element of a curved surface, or patches turned off
+        if size <= 0:  # patches turned off
             out += [(members[i:i + 1], u, v) for i in range(len(members))]
             continue
         xy = centroids[members] @ np.stack([u, v]).T  # (k, 2)
@@ -120,14 +136,62 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
         by_cell = np.argsort(key, kind="stable")
         cuts = np.flatnonzero(np.diff(key[by_cell])) + 1
         out += [(members[part], u, v) for part in np.split(by_cell, cuts)]
+    return out, np.concatenate(alone) if alone else np.zeros(0, dtype=np.int64)
+
+
+def _curved_cells(members: np.ndarray, owner: np.ndarray, centroids: np.ndarray, normals: np.ndarray,
+                  areas: np.ndarray, corners: np.ndarray, patch_size: np.ndarray
+                  ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The patches of curved surfaces from their (m,) elements, each alone on its plane: per
+    object (``owner`` (T,)), those whose centroids share a cube of the grid of side the surface's median patch
+    size, and whose normals lie within ``CURVED_PATCH_CONE`` of the cube's largest element's
+    (one hemicube along their mean normal then stands in for them as it does for a plane
+    patch; a sphere's cube holds a cap, a thin shell's two sides part). Where another object
+    passes through such a group's bounding box, its elements shoot alone: a lamp's globe
+    pierced by its holder must not shoot the light of its part inside the holder from a
+    point outside it (measured on a furnished room: 6% too bright everywhere)."""
+    out = []
+    cos_cone = np.cos(np.radians(CURVED_PATCH_CONE))
+    low, high = corners.min(1), corners.max(1)  # (T, 3) each element's bounding box
+    for s in np.unique(owner[members]):
+        group = members[owner[members] == s]
+        size = float(np.median(patch_size[group]))
+        if size <= 0:  # patches turned off: every element shoots alone
+            out += [(group[i:i + 1], *plane_axes(normals[group[i]])) for i in range(len(group))]
+            continue
+        cell = np.floor((centroids[group] - centroids[group].min(0)) / size).astype(np.int64)
+        _, key = np.unique(cell, axis=0, return_inverse=True)
+        for c in range(int(key.max()) + 1):
+            left = group[key.reshape(-1) == c]
+            while len(left):
+                seed = left[int(np.argmax(areas[left]))]
+                within = normals[left] @ normals[seed] >= cos_cone
+                part = left[within]
+                left = left[~within]
+                if len(part) > 1 and _crossed(part, s, owner, low, high):
+                    out += [(part[i:i + 1], *plane_axes(normals[part[i]])) for i in range(len(part))]
+                    continue
+                normal = (normals[part] * areas[part, None]).sum(0)
+                out.append((part, *plane_axes(normal / np.linalg.norm(normal))))
     return out
+
+
+def _crossed(part: np.ndarray, own: int, owner: np.ndarray, low: np.ndarray, high: np.ndarray) -> bool:
+    """Whether an element of an object other than ``own`` reaches into the bounding box of the
+    elements ``part`` (k,), given every element's box ``low``, ``high`` (T, 3); boxes that
+    only touch (an object resting on another) do not count."""
+    box_low, box_high = low[part].min(0), high[part].max(0)
+    slack = 1e-9 * float(np.abs(box_high).max() + np.abs(box_low).max())
+    inside = np.all((low < box_high - slack) & (high > box_low + slack), axis=1)
+    return bool((inside & (owner != own)).any())
 
 
 class _TreeBuilder:
     """Numbers nodes depth-first while splitting each patch into quadrants."""
 
-    def __init__(self, centroids, normals, areas, edges):
+    def __init__(self, centroids, normals, areas, edges, corners, plane_ids):
         self.centroids, self.normals, self.areas, self.edges = centroids, normals, areas, edges
+        self.corners, self.plane_ids = corners, plane_ids
         self.leaf_order: list[int] = []
         self.leaf_nodes: list[int] = []
         self.rows: list[list] = []  # per node: lo, hi, children, centroid, normal, tangent
@@ -150,8 +214,20 @@ class _TreeBuilder:
         centroid = (self.centroids[members] * weights[:, None]).sum(0) / weights.sum()
         normal = (self.normals[members] * weights[:, None]).sum(0)
         normal /= np.linalg.norm(normal)
+        if not np.all(self.plane_ids[members] == self.plane_ids[members[0]]):  # a curved node
+            centroid = self._eye_point(members, centroid, normal)
         self.rows[index] = [lo, len(self.leaf_order), children, centroid, normal, u]
         return index
+
+    def _eye_point(self, members: np.ndarray, centroid: np.ndarray, normal: np.ndarray) -> np.ndarray:
+        """Where a curved node shoots from: its area-weighted centroid lies off its surface
+        (under a convex cap, where its hemicube would see its own back faces), so the centroid
+        of its element nearest to that point, raised along the node's ``normal`` until no corner
+        of its elements lies above (none of them in its own hemicube)."""
+        nearest = members[int(np.argmin(np.linalg.norm(self.centroids[members] - centroid, axis=1)))]
+        point = self.centroids[nearest]
+        rise = float(((self.corners[members].reshape(-1, 3) - point) @ normal).max())
+        return point + max(rise, 0.0) * normal
 
     def finish(self, roots: np.ndarray, patch: np.ndarray) -> PatchTree:
         lo, hi, children, centroid, normal, tangent = (list(col) for col in zip(*self.rows))
