@@ -107,7 +107,7 @@ def test_the_remaining_error_is_the_lamps_outline_rounded_to_pixel_centres(monke
         return float(delta_form_factors(resolution)[:resolution][inside].sum())
 
     turned = hemicube(256)
-    monkeypatch.setattr(sensors, "TANGENT_HINT", np.array([1.0, 0.0, 0.0]))
+    monkeypatch.setattr(sensors, "OFF_AXIS_TANGENT", np.array([1.0, 0.0, 0.0]))
     for resolution in (256, 512):
         along = hemicube(resolution)
         assert along == pytest.approx(centres_inside(resolution), rel=1e-9)

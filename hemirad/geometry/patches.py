@@ -31,9 +31,9 @@ class PatchTree:
         lo, hi: (N,) int64 each node's range [lo, hi) of leaf positions.
         child_start: (N + 1,) int64 and child_ids: (C,) int64: the children of node n are
             ``child_ids[child_start[n]:child_start[n + 1]]`` (none: a single element).
-        centroid, normal, tangent: (N, 3) float64 where a node shoots from: the area-weighted
-            centroid of its elements, their plane's unit normal, and an in-plane direction
-            that fixes its hemicube's frame.
+        centroid, normal: (N, 3) float64 where a node shoots from: the area-weighted centroid
+            of its elements (on a curved surface, ``_TreeBuilder._eye_point``) and their
+            plane's unit normal.
         leaf_node: (T,) int64 the node of each leaf position (a single initial element).
     """
 
@@ -46,7 +46,6 @@ class PatchTree:
     child_ids: torch.Tensor
     centroid: torch.Tensor
     normal: torch.Tensor
-    tangent: torch.Tensor
     leaf_node: torch.Tensor
 
     @property
@@ -91,13 +90,12 @@ def build_patches(mesh: Mesh, patch_size: np.ndarray, owner: np.ndarray | None =
     normals = mesh.normals.cpu().numpy()
     areas = mesh.areas.cpu().numpy()
     corners = mesh.corners.cpu().numpy()
-    edges = corners[:, 1] - corners[:, 0]
     patch_size = np.asarray(patch_size)
     plane_ids = mesh.plane_ids.cpu().numpy()
     groups, alone = _plane_cells(plane_ids, centroids, normals, areas, patch_size)
     owner = mesh.surface.cpu().numpy() if owner is None else np.asarray(owner)
     groups += _curved_cells(alone, owner, centroids, normals, areas, corners, patch_size)
-    builder = _TreeBuilder(centroids, normals, areas, edges, corners, plane_ids)
+    builder = _TreeBuilder(centroids, normals, areas, corners, plane_ids)
     roots, patch = [], np.empty(mesh.num_elements, dtype=np.int64)
     for index, (members, u, v) in enumerate(groups):
         patch[members] = index
@@ -189,12 +187,12 @@ def _crossed(part: np.ndarray, own: int, owner: np.ndarray, low: np.ndarray, hig
 class _TreeBuilder:
     """Numbers nodes depth-first while splitting each patch into quadrants."""
 
-    def __init__(self, centroids, normals, areas, edges, corners, plane_ids):
-        self.centroids, self.normals, self.areas, self.edges = centroids, normals, areas, edges
+    def __init__(self, centroids, normals, areas, corners, plane_ids):
+        self.centroids, self.normals, self.areas = centroids, normals, areas
         self.corners, self.plane_ids = corners, plane_ids
         self.leaf_order: list[int] = []
         self.leaf_nodes: list[int] = []
-        self.rows: list[list] = []  # per node: lo, hi, children, centroid, normal, tangent
+        self.rows: list[list] = []  # per node: lo, hi, children, centroid, normal
 
     def node(self, members: np.ndarray, u: np.ndarray, v: np.ndarray) -> int:
         index = len(self.rows)
@@ -204,9 +202,7 @@ class _TreeBuilder:
             e = int(members[0])
             self.leaf_order.append(e)
             self.leaf_nodes.append(index)
-            # a single element shoots from where an element's own hemicube is: its centroid,
-            # its normal, its first edge
-            self.rows[index] = [lo, lo + 1, [], self.centroids[e], self.normals[e], self.edges[e]]
+            self.rows[index] = [lo, lo + 1, [], self.centroids[e], self.normals[e]]
             return index
         parts = _quadrants(self.centroids[members] @ np.stack([u, v]).T)
         children = [self.node(members[part], u, v) for part in parts]
@@ -216,7 +212,7 @@ class _TreeBuilder:
         normal /= np.linalg.norm(normal)
         if not np.all(self.plane_ids[members] == self.plane_ids[members[0]]):  # a curved node
             centroid = self._eye_point(members, centroid, normal)
-        self.rows[index] = [lo, len(self.leaf_order), children, centroid, normal, u]
+        self.rows[index] = [lo, len(self.leaf_order), children, centroid, normal]
         return index
 
     def _eye_point(self, members: np.ndarray, centroid: np.ndarray, normal: np.ndarray) -> np.ndarray:
@@ -230,7 +226,7 @@ class _TreeBuilder:
         return point + max(rise, 0.0) * normal
 
     def finish(self, roots: np.ndarray, patch: np.ndarray) -> PatchTree:
-        lo, hi, children, centroid, normal, tangent = (list(col) for col in zip(*self.rows))
+        lo, hi, children, centroid, normal = (list(col) for col in zip(*self.rows))
         leaf = np.empty(len(self.leaf_order), dtype=np.int64)
         leaf[np.asarray(self.leaf_order, dtype=np.int64)] = np.arange(len(self.leaf_order))
         child_start = np.concatenate([[0], np.cumsum([len(c) for c in children])])
@@ -239,7 +235,7 @@ class _TreeBuilder:
         return PatchTree(torch.from_numpy(leaf), torch.from_numpy(patch), torch.from_numpy(roots),
                          torch.tensor(lo), torch.tensor(hi), torch.from_numpy(child_start), torch.from_numpy(child_ids),
                          torch.tensor(np.stack(centroid), **f64), torch.tensor(np.stack(normal), **f64),
-                         torch.tensor(np.stack(tangent), **f64), torch.tensor(self.leaf_nodes, dtype=torch.int64))
+                         torch.tensor(self.leaf_nodes, dtype=torch.int64))
 
 
 def _quadrants(xy: np.ndarray) -> list[np.ndarray]:

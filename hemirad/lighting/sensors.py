@@ -14,7 +14,6 @@ the half-space its normal faces, so it measures the irradiance on that side only
 from __future__ import annotations
 
 import contextlib
-import math
 from dataclasses import dataclass
 from typing import Iterator
 
@@ -24,20 +23,13 @@ import torch
 from hemirad.core.runtime import torch_threads
 from hemirad.geometry.mesh import Mesh
 from hemirad.transport.gl import GLContext
+from hemirad.transport.hemicube import OFF_AXIS_TANGENT
 from hemirad.transport.renderer import HemicubeRenderer, clip_planes
 
 #: The hemicube resolution of a sensor: at 256 a point under a rectangular lamp is within
 #: 0.5% of Lambert's closed form (0.07% on average; tests/test_sensors.py).
 SENSOR_RESOLUTION = 256
 
-#: Turns a sensor's hemicube about its normal (the direction is projected into its plane).
-#: A pixel counts whole for the element its centre sees, so an outline running along the
-#: pixel rows is off by the same fraction of a pixel all along it: under a 1 x 0.6 lamp
-#: seen from 2 away (32 x 19 pixels), the frame along the lamp's edges errs by 1.0%. Scenes
-#: are mostly drawn along their axes, so the frame is turned off every axis (29 degrees
-#: about y, 57 about x, 20 about z): an edge then crosses the rows, its pixels' errors
-#: cancel along it, and the same point errs by 0.09%. Fixed, so results are reproducible.
-TANGENT_HINT = np.array([math.cos(0.5), 0.31, math.sin(0.5)])
 
 
 @dataclass(frozen=True)
@@ -109,7 +101,7 @@ def final_gather(mesh: Mesh, radiosity: torch.Tensor, points, normals, resolutio
     # as in a solve: beside a software renderer, a second torch thread only fights it for the cores
     with torch_threads(1 if GLContext.is_software() else torch.get_num_threads()):
         for i, (point, normal) in enumerate(zip(points, normals)):
-            view = renderer.render_at(point, normal, TANGENT_HINT)
+            view = renderer.render_at(point, normal, OFF_AXIS_TANGENT)
             irradiance[i] = (view.form_factors @ radiosity).cpu()
             coverage[i] = float(torch.where(view.element >= 0, view.weight, 0.0).sum())
             front_coverage[i] = float(view.form_factors.sum())

@@ -17,7 +17,8 @@ from hemirad.core.errors import HemiradWarning
 from hemirad.geometry.mesh import Mesh
 from hemirad.lighting.grids import GridLayout, grid_layout, grid_statistics
 from hemirad.lighting.photometry import illuminance
-from hemirad.lighting.sensors import SENSOR_RESOLUTION, TANGENT_HINT, final_gather, sensor_renderer, unit_normals
+from hemirad.lighting.sensors import SENSOR_RESOLUTION, final_gather, sensor_renderer, unit_normals
+from hemirad.transport.hemicube import OFF_AXIS_TANGENT
 from hemirad.scene.model import Grid, Scene
 
 #: The columns of ``sensors.csv`` (E: the luminance of E_r, E_g, E_b in the scene's unit).
@@ -117,7 +118,7 @@ def blind_grids(scene: Scene, mesh: Mesh, resolution: int = SENSOR_RESOLUTION) -
     with sensor_renderer(mesh, points, resolution) as renderer:
         for grid, layout in zip(scene.grids, layouts):
             normal = layout.normal.numpy()
-            if not any(bool((renderer.render_at(point, normal, TANGENT_HINT).element >= 0).any())
+            if not any(bool((renderer.render_at(point, normal, OFF_AXIS_TANGENT).element >= 0).any())
                        for point in layout.points.reshape(-1, 3).numpy()):
                 blind.append(grid)
     return blind

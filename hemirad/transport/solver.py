@@ -19,6 +19,7 @@ from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import GrowingRows
 from hemirad.scene.model import SMALL_RECEIVER_CHOICES
 from hemirad.transport.gl import GLContext
+from hemirad.transport.hemicube import OFF_AXIS_TANGENT
 from hemirad.transport.nearfield import NearReceivers, incident_power, near_receivers
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
@@ -203,7 +204,7 @@ class ProgressiveSolver:
         if self.patches is None:
             return self.renderer.render(shooter)
         tree = self.patches.tree
-        return self.renderer.render_at(*(x[shooter].numpy() for x in (tree.centroid, tree.normal, tree.tangent)))
+        return self.renderer.render_at(tree.centroid[shooter].numpy(), tree.normal[shooter].numpy(), OFF_AXIS_TANGENT)
 
     def shooter_elements(self, shooter: int) -> int | torch.Tensor:
         """The elements ``shooter`` is: the element itself, or (K,) a node's elements."""
