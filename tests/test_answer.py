@@ -91,11 +91,20 @@ def test_split_receivers_get_the_light_a_fresh_solve_gives_them_and_keep_their_p
         fresh = lamp_solver(mesh)
         try:
             fresh.run(1, 0.0)
-            torch.testing.assert_close(state.radiosity[floor], fresh.state.radiosity[floor], rtol=1e-9, atol=0)
+            # up to a pixel's weight: the rasteriser snaps a parent's new edge midpoints to its
+            # sub-pixel grid, so a pixel centre on the parent's border may change sides (the
+            # children are scaled to what the parent received; 1.3% measured, and equal to 1e-9
+            # when the hemicube's pixel rows run along the borders)
+            torch.testing.assert_close(state.radiosity[floor], fresh.state.radiosity[floor], rtol=0.02, atol=0)
         finally:
             fresh.close()
-        # and that is not the parents' values: the children of one parent differ
+        # and that is not the parents' values: the children of one parent differ, by more than that
         assert len(torch.unique(state.radiosity[floor, 0])) > 8 * 40
+        cell = (mesh.centroids[floor][:, [0, 2]] / 0.1).floor().long()  # the initial 10 cm cells
+        cell = cell[:, 0] * 2 + cell[:, 1] + 1
+        value = state.radiosity[floor, 0]
+        spread = [float(value[cell == c].max() / value[cell == c].min() - 1) for c in torch.unique(cell)]
+        assert max(spread) > 0.1  # measured: 56% within one cell
     finally:
         solver.close()
 

@@ -132,7 +132,6 @@ def regather(solver: "ProgressiveSolver", parent: torch.Tensor, split: torch.Ten
     is_changed[changed] = True
     which = torch.searchsorted(split, parent.index_select(0, changed))  # (C,) index into split
     gathered = torch.zeros(len(changed), 3, dtype=torch.float64, device=solver.device)
-    tree = patches.tree
     for node in nodes:
         # the node's row for the children only: the per-element scaling below takes the
         # place of the row's own (``small_receiver_form_factors``), and later shots render
@@ -142,7 +141,7 @@ def regather(solver: "ProgressiveSolver", parent: torch.Tensor, split: torch.Ten
         near = solver.near_receivers_of(node, F, among=changed)
         if near is not None and len(near.rows):
             # near the node, its light as its initial elements sent it (``nearfield``), unscaled
-            lo, hi = int(tree.lo[node]), int(tree.hi[node])
+            lo, hi = patches.bounds(node)
             part[torch.searchsorted(changed, near.rows)] = near.weights.T @ patches.sent_by_leaf[lo:hi]
         gathered += part
     # each split element's children share exactly what it had received

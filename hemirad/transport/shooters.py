@@ -73,6 +73,8 @@ class PatchShooters:
         self._patch = GrowingRows(tree.patch.to(device))
         self.cuts: dict[int, list[int]] = {}
         self.shooter_splits = 0
+        self._members: dict[int, torch.Tensor] = {}  # per node, while the elements are unchanged
+        self._bounds = list(zip(tree.lo.tolist(), tree.hi.tolist()))  # per node (lo, hi), as ints
         self.sent = torch.zeros(tree.num_nodes, 3, dtype=torch.float64, device=device)
         self.sent_by_leaf = torch.zeros(len(tree.leaf), 3, dtype=torch.float64, device=device)
 
@@ -88,6 +90,7 @@ class PatchShooters:
         """Follow a split of the receivers: new element i lies in old element ``parent[i]`` (T',)."""
         self._leaf.inherit(parent)
         self._patch.inherit(parent)
+        self._members.clear()
 
     def record(self, node: int, members: torch.Tensor, member_power: torch.Tensor) -> None:
         """Count a shot of ``node`` whose (K,) ``members`` shot (K, 3) ``member_power``."""
@@ -102,10 +105,18 @@ class PatchShooters:
         best = int(torch.argmax(magnitude))
         return best if float(magnitude[best]) > 0.0 else None
 
+    def bounds(self, node: int) -> tuple[int, int]:
+        """``node``'s range [lo, hi) of leaf positions (its initial elements)."""
+        return self._bounds[node]
+
     def members(self, node: int) -> torch.Tensor:
         """(K,) the elements of ``node``."""
-        leaf = self.leaf
-        return flatnonzero((leaf >= int(self.tree.lo[node])) & (leaf < int(self.tree.hi[node])))
+        members = self._members.get(node)
+        if members is None:
+            lo, hi = self._bounds[node]
+            leaf = self.leaf
+            members = self._members[node] = flatnonzero((leaf >= lo) & (leaf < hi))
+        return members
 
     def cut(self, patch: int, render: Callable[[int], HemicubeView], corners: Callable[[int], torch.Tensor]
             ) -> list[int]:
@@ -147,6 +158,7 @@ class PatchShooters:
             raise ValueError("the patches' cuts do not fit together")
         device = self.leaf.device
         self._leaf, self._patch = GrowingRows(leaf.to(device)), GrowingRows(patch.to(device))
+        self._members.clear()
         self.cuts = {int(p): part.tolist() for p, part in zip(patches, torch.split(nodes, sizes.tolist()))}
         self.shooter_splits = int(state["shooter_splits"])
         for name in ("sent", "sent_by_leaf"):

@@ -296,7 +296,7 @@ class ProgressiveSolver:
                 shot_power = member_power.sum(0)
                 leaf_power = None
                 if self._spreads(node):  # by the node's initial elements (the near field's sources)
-                    lo, hi = int(patches.tree.lo[node]), int(patches.tree.hi[node])
+                    lo, hi = patches.bounds(node)
                     leaf_power = torch.zeros(hi - lo, 3, dtype=shot.dtype, device=self.device).index_add_(
                         0, patches.leaf.index_select(0, members) - lo, member_power)
                 # taken before the shot: a refining shot may split the node's elements, whose
@@ -352,8 +352,8 @@ class ProgressiveSolver:
     def _spreads(self, node: int) -> bool:
         """Whether ``node``'s light to its near receivers is spread by its initial elements:
         there is a near field, and the node has more than one element."""
-        tree = self.patches.tree
-        return self.near_reach > 0 and int(tree.hi[node]) - int(tree.lo[node]) > 1
+        lo, hi = self.patches.bounds(node)
+        return self.near_reach > 0 and hi - lo > 1
 
     def near_receivers_of(self, node: int, F: torch.Tensor, among: torch.Tensor | None = None
                           ) -> NearReceivers | None:
@@ -365,7 +365,7 @@ class ProgressiveSolver:
         if among is None and node in self._near:
             return self._near[node]
         tree = self.patches.tree
-        lo, hi = int(tree.lo[node]), int(tree.hi[node])
+        lo, hi = self.patches.bounds(node)
         sources = tree.centroid.index_select(0, tree.leaf_node[lo:hi]).to(self.device)
         near = near_receivers(self.mesh, self.patches.members(node), sources, tree.centroid[node].to(self.device),
                               tree.normal[node].to(self.device), F, self.near_reach, among)
