@@ -15,9 +15,9 @@ from hemirad.core.errors import SceneError
 from hemirad.geometry.crossings import crossing_segments
 from hemirad.geometry.footprints import PlaneFrame
 from hemirad.geometry.patches import plane_axes
-from hemirad.geometry.solids import closed_solids, winding_numbers
+from hemirad.geometry.solids import closed_solids
 from hemirad.scene.loader import parse_scene
-from hemirad.scene.meshing import build_mesh, grid_quad
+from hemirad.scene.meshing import box_face_corners, build_mesh
 from hemirad.scene.model import Box, Camera, Material, Quad, Room, Scene
 
 TOLERANCE = 1e-9
@@ -178,7 +178,6 @@ def quad_shell(corners) -> tuple[np.ndarray, np.ndarray]:
 
 
 def box_shells(low, high, inward: bool = False):
-    from hemirad.scene.meshing import box_face_corners
     return [quad_shell(box_face_corners(torch.tensor(low, dtype=torch.float64), torch.tensor(high, dtype=torch.float64),
                                         face, inward).numpy())
             for face in ("floor", "ceiling", "x_min", "x_max", "z_min", "z_max")]
@@ -202,10 +201,25 @@ def test_which_surfaces_make_solids():
     assert inside.tolist() == [True, False, False, False]  # on the surface counts as outside
 
 
-def test_the_winding_number_of_a_box():
-    corners = np.concatenate([v[t] for v, t in box_shells((0, 0, 0), (1, 1, 1))])
-    w = winding_numbers(np.array([[0.5, 0.5, 0.5], [0.01, 0.99, 0.5], [1.5, 0.5, 0.5], [-3, 7, 2]]), corners)
-    assert w == pytest.approx([1, 1, 0, 0], abs=1e-9)
+def test_what_a_solid_holds():
+    """Inside a box, an L of two boxes (concave: a ray from its inner corner crosses it
+    three times) and a sphere of 1,280 triangles; on the surface is outside."""
+    box = closed_solids(box_shells((0, 0, 0), (1, 1, 1)), 1e-9)[0]
+    points = np.array([[0.5, 0.5, 0.5], [0.01, 0.99, 0.5], [1.5, 0.5, 0.5], [-3, 7, 2], [1.0, 0.5, 0.5], [0, 0, 0]])
+    assert box.contains(points, 1e-9).tolist() == [True, True, False, False, False, False]
+    # an L: [0, 2] x [0, 1] and [0, 1] x [1, 2] in (x, y), from z = 0 to 1
+    ell = trimesh.creation.extrude_polygon(shapely.Polygon([(0, 0), (2, 0), (2, 1), (1, 1), (1, 2), (0, 2)]), 1.0)
+    solid = closed_solids([(np.asarray(ell.vertices), np.asarray(ell.faces))], 1e-9)[0]
+    points = np.array([[0.5, 1.5, 0.5], [1.5, 0.5, 0.5], [1.5, 1.5, 0.5], [1.2, 1.2, 0.5], [0.9, 1.1, 0.5]])
+    assert solid.contains(points, 1e-9).tolist() == [True, True, False, False, True]
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    solid = closed_solids([(np.asarray(sphere.vertices), np.asarray(sphere.faces))], 1e-9)[0]
+    rng = np.random.default_rng(1)
+    points = rng.uniform(-1.2, 1.2, (4000, 3))
+    radius = np.linalg.norm(points, axis=1)
+    clear = np.abs(radius - 0.99) > 0.02  # the facets lie between radius 0.98 and 1
+    held = solid.contains(points, 1e-9)
+    assert (held[clear] == (radius[clear] < 0.99)).all()
 
 
 # ----------------------------------------------------------------------------------------

@@ -11,10 +11,14 @@ Surfaces are joined into solids through edges that exactly two triangles share, 
 way (after merging corners closer than the tolerance): a box whose edge lies along a
 room's edge meets it in a four-triangle edge, and stays a solid of its own.
 
-Inside is decided by the generalised winding number (the solid angle the closed surface
-subtends, over 4 pi): 1 inside, 0 outside, whatever the solid's shape. A point on the
-surface (within the tolerance) counts as outside: a floor's elements under a box's bottom
-face are not inside the box.
+Inside is decided by a ray: from the point along a fixed direction, the faces it leaves
+through less those it enters through is 1 inside a closed outward surface and 0 outside,
+whatever its shape (the winding number). The faces a ray may meet are found through a
+grid over the plane across the ray, so a point costs the few triangles over its cell,
+not the whole solid. Three directions, none along an axis, vote: a ray grazing an edge
+(which could count it twice or not at all) is outvoted. A point on the surface (within
+the tolerance) counts as outside: a floor's elements under a box's bottom face are not
+inside the box.
 """
 from __future__ import annotations
 
@@ -25,8 +29,16 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-#: (points x triangles) pairs evaluated at once: bounds the temporary arrays to some 50 MB.
-CHUNK = 1 << 18
+#: The rays' directions: unit vectors along no axis and no face of an axis-aligned box.
+DIRECTIONS = np.array([[0.5381, 0.7164, 0.4437], [-0.6125, 0.3261, 0.7203], [0.2897, -0.8391, 0.4602]])
+DIRECTIONS = DIRECTIONS / np.linalg.norm(DIRECTIONS, axis=1, keepdims=True)
+
+#: The grid across a ray has at most this many cells along a side.
+MAX_CELLS = 256
+
+#: Cells are made larger until the (cell, triangle) pairs are at most this many per triangle
+#: (or a million): a solid's few large faces must not each cover the whole grid's cells.
+CELLS_PER_TRIANGLE = 8
 
 
 @dataclass(frozen=True)
@@ -49,12 +61,18 @@ class Solid:
         its surface."""
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         inside = np.zeros(len(points), dtype=bool)
-        near = ((points >= self.low - tolerance) & (points <= self.high + tolerance)).all(axis=1)
-        rows = np.flatnonzero(near)
-        rows = rows[winding_numbers(points[rows], self.corners) > 0.5]
-        # on the surface the solid angle of the triangle under the point is +-2 pi by
-        # rounding: such a point is on the boundary, not inside
-        inside[rows] = ~on_surface(points[rows], self.corners, tolerance)
+        rows = np.flatnonzero(((points >= self.low - tolerance) & (points <= self.high + tolerance)).all(axis=1))
+        if not len(rows):
+            return inside
+        p = points[rows]
+        votes = np.zeros(len(rows), dtype=np.int64)
+        on = np.zeros(len(rows), dtype=bool)
+        for k, direction in enumerate(DIRECTIONS):
+            point, triangle = _under_ray(p, self.corners, direction, tolerance)
+            votes += _crossings(p, self.corners, direction, point, triangle) > 0
+            if k == 0:  # the triangles a point lies on are over its cell in every grid
+                on[point[_on_triangles(p[point], self.corners[triangle], tolerance)]] = True
+        inside[rows] = (votes >= 2) & ~on
         return inside
 
 
@@ -104,12 +122,13 @@ def closed_solids(shells: list[tuple[np.ndarray, np.ndarray]], tolerance: float)
                                                   np.cross(corners[:, 1], corners[:, 2])) / 6.0, minlength=count)
     area = np.bincount(label, weights=0.5 * np.linalg.norm(
         np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1), minlength=count)
+    # no thicker than the tolerance (a quad and its reverse, back to back): no inside
+    closed = np.flatnonzero(~open_component & (volume > tolerance * area))
+    by_component = np.argsort(label, kind="stable")
+    bounds = np.searchsorted(label[by_component], np.arange(count + 1))
     solids = []
-    for component in range(count):
-        rows = np.flatnonzero(label == component)
-        # no thicker than the tolerance (a quad and its reverse, back to back): no inside
-        if open_component[component] or volume[component] <= tolerance * area[component]:
-            continue
+    for component in closed:
+        rows = by_component[bounds[component]:bounds[component + 1]]
         c = corners[rows]
         solids.append(Solid(c, frozenset(np.unique(owner[rows]).tolist()),
                             c.reshape(-1, 3).min(axis=0), c.reshape(-1, 3).max(axis=0)))
@@ -131,38 +150,81 @@ def _merge_corners(vertices: np.ndarray, tolerance: float) -> np.ndarray:
     return target
 
 
-def winding_numbers(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
-    """(P,) the winding number of the closed triangles (K, 3, 3) about each of ``points``
-    (P, 3): the sum of their signed solid angles (Van Oosterom & Strackee 1983) over 4 pi."""
-    out = np.empty(len(points))
-    step = max(1, CHUNK // max(1, len(corners)))
-    for start in range(0, len(points), step):
-        p = points[start:start + step, None, None, :]
-        r = corners[None] - p  # (p, K, 3, 3)
-        a, b, c = r[:, :, 0], r[:, :, 1], r[:, :, 2]
-        la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
-        det = np.einsum("pki,pki->pk", a, np.cross(b, c))
-        dot = lambda x, y: np.einsum("pki,pki->pk", x, y)  # noqa: E731
-        denominator = la * lb * lc + dot(a, b) * lc + dot(a, c) * lb + dot(b, c) * la
-        out[start:start + step] = 2.0 * np.arctan2(det, denominator).sum(axis=1) / (4.0 * np.pi)
-    return out
+def _under_ray(points: np.ndarray, corners: np.ndarray, direction: np.ndarray,
+               tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) point and (M,) triangle indices: for each of ``points`` (P, 3), the triangles
+    of (K, 3, 3) ``corners`` over its cell of a grid across ``direction`` (3,), their
+    bounding boxes widened by ``tolerance``: every triangle its ray can meet, and every
+    triangle it lies on."""
+    u, v = _across(direction)
+    flat = np.stack([corners @ u, corners @ v], axis=-1)  # (K, 3, 2)
+    at = np.stack([points @ u, points @ v], axis=-1)  # (P, 2)
+    low, high = flat.min(axis=1) - tolerance, flat.max(axis=1) + tolerance
+    origin = low.min(axis=0)
+    span = float((high.max(axis=0) - origin).max())
+    # cells about a triangle wide: each triangle over a few cells, a few triangles per cell
+    cell = max(float(np.median((high - low).max(axis=1))), span / MAX_CELLS, 1e-300)
+    while True:
+        first = np.floor((low - origin) / cell).astype(np.int64)
+        last = np.floor((high - origin) / cell).astype(np.int64)
+        width = last - first + 1  # (K, 2) cells along each side
+        count = width[:, 0] * width[:, 1]
+        if count.sum() <= max(CELLS_PER_TRIANGLE * len(corners), 1 << 20):
+            break
+        cell *= 2.0
+    columns = int(last[:, 1].max()) + 1
+    triangle = np.repeat(np.arange(len(corners)), count)
+    k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    cells = (first[triangle, 0] + k // width[triangle, 1]) * columns + first[triangle, 1] + k % width[triangle, 1]
+    order = np.argsort(cells, kind="stable")
+    cells, triangle = cells[order], triangle[order]
+
+    where = np.floor((at - origin) / cell).astype(np.int64)
+    within = (where >= 0).all(axis=1) & (where[:, 1] < columns)
+    own = np.where(within, where[:, 0] * columns + where[:, 1], -1)
+    start = np.searchsorted(cells, own, side="left")
+    stop = np.where(within, np.searchsorted(cells, own, side="right"), start)
+    many = stop - start
+    point = np.repeat(np.arange(len(points)), many)
+    offset = np.arange(many.sum()) - np.repeat(np.cumsum(many) - many, many)
+    return point, triangle[np.repeat(start, many) + offset]
 
 
-def on_surface(points: np.ndarray, corners: np.ndarray, tolerance: float) -> np.ndarray:
-    """(P,) bool: which of ``points`` (P, 3) lie within ``tolerance`` of one of the
-    triangles (K, 3, 3): off its plane by no more, and inside its outline widened by as much."""
-    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-    normal = np.cross(e1, e2)
+def _crossings(points: np.ndarray, corners: np.ndarray, direction: np.ndarray, point: np.ndarray,
+               triangle: np.ndarray) -> np.ndarray:
+    """(P,) for each of ``points`` (P, 3), the faces of (K, 3, 3) ``corners`` its ray along
+    ``direction`` leaves through less those it enters through, of the candidate pairs
+    ``point``, ``triangle`` (M,): 1 inside a closed outward surface, 0 outside."""
+    u, v = _across(direction)
+    c = corners[triangle]  # (M, 3, 3)
+    p = points[point]  # (M, 3)
+    flat = np.stack([c @ u, c @ v], axis=-1) - np.stack([p @ u, p @ v], axis=-1)[:, None]  # the point at 0
+    a, b, d = flat[:, 0], flat[:, 1], flat[:, 2]
+    cross = lambda x, y: x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0]  # noqa: E731
+    w = np.stack([cross(b, d), cross(d, a), cross(a, b)], axis=1)  # (M, 3): the point's side of each edge
+    hit = (w > 0).all(axis=1) | (w < 0).all(axis=1)  # strictly inside the triangle, as seen along the ray
+    normal = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+    facing = normal @ direction
+    ahead = np.einsum("mi,mi->m", c[:, 0] - p, normal) * np.sign(facing) > 0
+    sign = np.sign(facing).astype(np.int64) * (hit & ahead)
+    return np.bincount(point, weights=sign, minlength=len(points)).round().astype(np.int64)
+
+
+def _on_triangles(points: np.ndarray, corners: np.ndarray, tolerance: float) -> np.ndarray:
+    """(M,) bool: whether each of ``points`` (M, 3) lies within ``tolerance`` of its triangle
+    ``corners`` (M, 3, 3): off its plane by no more, and inside its outline widened by as much."""
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
-    ends = corners[:, [1, 2, 0]] - corners  # (K, 3, 3) each edge
-    inward = np.cross(normal[:, None], ends)  # points into the triangle for a right-handed one
+    height = np.einsum("mi,mi->m", points - corners[:, 0], normal)
+    edges = corners[:, [1, 2, 0]] - corners  # (M, 3, 3)
+    inward = np.cross(normal[:, None], edges)  # into the triangle, for its own winding
     inward /= np.maximum(np.linalg.norm(inward, axis=-1, keepdims=True), 1e-300)
-    out = np.zeros(len(points), dtype=bool)
-    step = max(1, CHUNK // max(1, len(corners)))
-    for start in range(0, len(points), step):
-        d = points[start:start + step, None, :] - corners[None, :, 0]  # (p, K, 3)
-        height = np.einsum("pki,ki->pk", d, normal)
-        rel = points[start:start + step, None, None, :] - corners[None]  # (p, K, 3, 3)
-        within = (np.einsum("pkji,kji->pkj", rel, inward) >= -tolerance).all(axis=-1)
-        out[start:start + step] = ((np.abs(height) <= tolerance) & within).any(axis=1)
-    return out
+    within = (np.einsum("mji,mji->mj", points[:, None] - corners, inward) >= -tolerance).all(axis=1)
+    return (np.abs(height) <= tolerance) & within
+
+
+def _across(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (3,) across ``direction`` (3,) and across each other."""
+    u = np.cross(direction, [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u)
+    return u, np.cross(direction, u)

@@ -35,9 +35,6 @@ from hemirad.geometry.patches import plane_axes
 from hemirad.geometry.solids import Solid, closed_solids
 from hemirad.scene.contacts import CONTACT_TOLERANCE, SurfaceGeometry
 
-#: Triangle pairs whose bounding boxes are tested at once (memory of the boolean block).
-PAIR_CHUNK = 1 << 22
-
 Meshed = tuple[np.ndarray, np.ndarray]
 
 
@@ -176,16 +173,31 @@ def _near_box(corners: np.ndarray, low: np.ndarray, high: np.ndarray, tolerance:
 
 def _box_pairs(first: np.ndarray, second: np.ndarray, tolerance: float) -> np.ndarray:
     """(N, 2) the index pairs (into (A, 3, 3) ``first``, (B, 3, 3) ``second``) of triangles
-    whose bounding boxes meet, in order."""
+    whose bounding boxes meet (within ``tolerance``), sorted.
+
+    Boxes are centres and half-sizes: they meet where the centres are no farther apart on
+    any axis than the half-sizes together. A k-d tree of the centres of ``second`` (in the
+    max norm) finds the candidates, one tree per size class (half-sizes within a factor of
+    2), so a wall's large triangles do not make every query reach over the whole scene."""
     if not len(first) or not len(second):
         return np.zeros((0, 2), dtype=np.int64)
-    low_a, high_a = first.min(axis=1) - tolerance, first.max(axis=1) + tolerance
-    low_b, high_b = second.min(axis=1), second.max(axis=1)
+    centre_a, half_a = 0.5 * (first.max(axis=1) + first.min(axis=1)), 0.5 * np.ptp(first, axis=1) + tolerance
+    centre_b, half_b = 0.5 * (second.max(axis=1) + second.min(axis=1)), 0.5 * np.ptp(second, axis=1)
+    reach_b = half_b.max(axis=1)
+    size_class = np.floor(np.log2(np.maximum(reach_b, 1e-300))).astype(np.int64)
     found = []
-    step = max(1, PAIR_CHUNK // len(second))
-    for start in range(0, len(first), step):
-        meet = ((low_a[start:start + step, None] <= high_b[None]) &
-                (high_a[start:start + step, None] >= low_b[None])).all(axis=-1)
-        a, b = np.nonzero(meet)
-        found.append(np.stack([a + start, b], axis=1))
-    return np.concatenate(found).astype(np.int64)
+    for k in np.unique(size_class):
+        members = np.flatnonzero(size_class == k)
+        near = cKDTree(centre_b[members]).query_ball_point(centre_a, half_a.max(axis=1) + reach_b[members].max(),
+                                                           p=np.inf)
+        counts = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
+        if not counts.sum():
+            continue
+        a = np.repeat(np.arange(len(first)), counts)
+        b = members[np.concatenate([n for n in near if n]).astype(np.int64)]
+        meet = (np.abs(centre_a[a] - centre_b[b]) <= half_a[a] + half_b[b]).all(axis=1)
+        found.append(np.stack([a[meet], b[meet]], axis=1))
+    if not found:
+        return np.zeros((0, 2), dtype=np.int64)
+    pairs = np.concatenate(found)
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
