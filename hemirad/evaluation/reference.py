@@ -156,9 +156,10 @@ def geometry_summary(scene: Scene) -> dict:
     """What a reference was made from, to notice a scene changed since: the camera, the
     materials (a flux with the exitance it makes), the triangle count and the total
     surface area (6 significant digits) of the surfaces as the scene describes them (meshed
-    without contact meshing, which leaves out only what nothing can see, so a path tracer
-    renders the same image either way)."""
-    described = dataclasses.replace(scene, meshing=dataclasses.replace(scene.meshing, contacts=False))
+    without contact meshing and without cutting at intersections, which leave out only what
+    nothing can see, so a path tracer renders the same image either way)."""
+    described = dataclasses.replace(scene, meshing=dataclasses.replace(scene.meshing, contacts=False,
+                                                                       intersections=False))
     mesh = build_mesh(described)
     camera = dataclasses.asdict(scene.camera)
     emission = emission_table(scene, mesh).tolist()

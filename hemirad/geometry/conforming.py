@@ -37,7 +37,8 @@ QUALITY_ROUNDS = 12
 
 
 def triangulate(region: BaseGeometry, lines: list[np.ndarray], interior: np.ndarray, element_size: float,
-                tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+                tolerance: float, quality_rounds: int = QUALITY_ROUNDS,
+                min_angle: float = MIN_ANGLE) -> tuple[np.ndarray, np.ndarray]:
     """Mesh ``region`` with triangles of about ``element_size``, its outline and ``lines``
     ((2, 2) segments inside it) as element edges.
 
@@ -50,6 +51,12 @@ def triangulate(region: BaseGeometry, lines: list[np.ndarray], interior: np.ndar
         element_size: target edge length: outline and lines are divided into pieces no
             longer than it.
         tolerance: points closer than this are one point.
+        quality_rounds: rounds of circumcentres where an angle is under ``MIN_ANGLE``; 0
+            adds no point the outline and lines do not need, so no point lands on the
+            outline between its given points (the triangle of a curved surface cut in
+            place keeps its edges as its neighbours see them).
+        min_angle: the angle (degrees) under which a triangle gets a circumcentre; a
+            surface whose own grid is thinner (a narrow quad) asks no better of its cuts.
 
     Returns:
         points: (N, 2) float64.
@@ -66,7 +73,8 @@ def triangulate(region: BaseGeometry, lines: list[np.ndarray], interior: np.ndar
         segments = np.unique(np.sort(segments[segments[:, 0] != segments[:, 1]], axis=1), axis=0)
     steiner = _steiner_points(region, points, segments, np.asarray(interior, dtype=np.float64).reshape(-1, 2),
                               CLEARANCE * element_size)
-    points, tris = _conforming_delaunay(np.concatenate([points, steiner]), segments, region, tolerance)
+    points, tris = _conforming_delaunay(np.concatenate([points, steiner]), segments, region, quality_rounds,
+                                        min_angle)
     corners = points[tris]
     signed = _signed_areas(corners)
     tris = np.where((signed < 0)[:, None], tris[:, [0, 2, 1]], tris)
@@ -91,15 +99,15 @@ def _steiner_points(region: BaseGeometry, points: np.ndarray, segments: np.ndarr
 
 
 def _conforming_delaunay(points: np.ndarray, segments: np.ndarray, region: BaseGeometry,
-                         tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+                         quality_limit: int, min_angle: float) -> tuple[np.ndarray, np.ndarray]:
     """The Delaunay triangulation of (N, 2) ``points`` with every segment (S, 2) a union of
-    its edges, refined where a triangle in ``region`` has an angle under ``MIN_ANGLE``.
+    its edges, refined where a triangle in ``region`` has an angle under ``min_angle``.
 
     A segment the triangulation misses is split at its midpoint. A bad triangle gets a
     point at its circumcentre (Ruppert 1995), unless that point falls within a segment's
     diametral circle: then the segment is split instead, so no point lands beside a
-    segment. At most ``QUALITY_ROUNDS`` rounds of that: a corner of the input sharper than
-    ``MIN_ANGLE`` cannot be mended and is left as it is.
+    segment. At most ``quality_limit`` rounds of that: a corner of the input sharper than
+    ``min_angle`` cannot be mended and is left as it is.
 
     Returns:
         points: (N', 2) the points, those added appended.
@@ -107,7 +115,7 @@ def _conforming_delaunay(points: np.ndarray, segments: np.ndarray, region: BaseG
     """
     segments = np.sort(segments, axis=1)
     quality_rounds = 0
-    for _ in range(MAX_ROUNDS + QUALITY_ROUNDS):
+    for _ in range(MAX_ROUNDS + quality_limit):
         tris = Delaunay(points).simplices.astype(np.int64)
         edges = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
         n = len(points)
@@ -115,11 +123,11 @@ def _conforming_delaunay(points: np.ndarray, segments: np.ndarray, region: BaseG
         split = ~have
         centres = np.zeros((0, 2))
         if have.all():
-            if quality_rounds == QUALITY_ROUNDS:
+            if quality_rounds == quality_limit:
                 return points, tris
             corners = points[tris]
             inside = shapely.contains_xy(region, *corners.mean(axis=1).T)
-            bad = inside & (_min_angles(corners) < MIN_ANGLE) & (np.abs(_signed_areas(corners)) > 0)
+            bad = inside & (min_angles(corners) < min_angle) & (np.abs(_signed_areas(corners)) > 0)
             if not bad.any():
                 return points, tris
             quality_rounds += 1
@@ -139,7 +147,7 @@ def _conforming_delaunay(points: np.ndarray, segments: np.ndarray, region: BaseG
     raise RuntimeError(f"conforming Delaunay: segments still missed after {MAX_ROUNDS} rounds of splitting")
 
 
-def _min_angles(corners: np.ndarray) -> np.ndarray:
+def min_angles(corners: np.ndarray) -> np.ndarray:
     """(T,) the smallest angle, in degrees, of each of (T, 3, 2) triangles."""
     sides = np.linalg.norm(corners[:, [1, 2, 0]] - corners[:, [2, 0, 1]], axis=-1)  # side k faces corner k
     shortest = sides.min(axis=1)

@@ -23,6 +23,7 @@ import torch
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.mesh import Mesh
 from hemirad.scene.contacts import SurfaceGeometry, conform_to_contacts
+from hemirad.scene.intersections import cut_at_intersections
 from hemirad.scene.meshfile import MeshContents, MeshFileUnreadable, clean_triangles, contents_of
 from hemirad.scene.model import Box, MeshFile, Quad, Room, Scene
 
@@ -37,6 +38,9 @@ class _Surface:
     triangles: torch.Tensor  # (T, 3) int64, indices into vertices
     material: int
     element_size: float  # what it was meshed at
+    # its outline triangles, as described (a quad's two, a mesh patch's own before
+    # subdivision): (V, 3) float64 and (T, 3) int64; closed solids are found from them
+    shell: tuple[np.ndarray, np.ndarray]
 
 
 # ----------------------------------------------------------------------------------------
@@ -132,6 +136,11 @@ def box_face_corners(lo, hi, face: str, inward: bool) -> torch.Tensor:
     return corners
 
 
+def _quad_shell(corners: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """A quad's (4, 3) ``corners`` as its two outline triangles."""
+    return corners.numpy().astype(np.float64), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int64)
+
+
 _BOX_FACE_NAMES = {"floor": "bottom", "ceiling": "top", "x_min": "x_min", "x_max": "x_max",
                    "z_min": "z_min", "z_max": "z_max"}
 
@@ -142,23 +151,26 @@ def _room_surfaces(room: Room, label: str, scene: Scene) -> list[_Surface]:
         override = room.faces.get(face)
         material = (override.material if override and override.material else None) or room.material
         size = (override.element_size if override and override.element_size else None) or room.element_size
-        v, t = grid_quad(box_face_corners(room.min, room.max, face, inward=True), size)
-        out.append(_Surface(f"{label}.{face}", v, t, scene.material_index(material), size))
+        corners = box_face_corners(room.min, room.max, face, inward=True)
+        v, t = grid_quad(corners, size)
+        out.append(_Surface(f"{label}.{face}", v, t, scene.material_index(material), size, _quad_shell(corners)))
     return out
 
 
 def _box_surfaces(box: Box, label: str, scene: Scene) -> list[_Surface]:
     out = []
     for face in Room.FACE_NAMES:
-        v, t = grid_quad(box_face_corners(box.min, box.max, face, inward=False), box.element_size)
+        corners = box_face_corners(box.min, box.max, face, inward=False)
+        v, t = grid_quad(corners, box.element_size)
         out.append(_Surface(f"{label}.{_BOX_FACE_NAMES[face]}", v, t, scene.material_index(box.material),
-                            box.element_size))
+                            box.element_size, _quad_shell(corners)))
     return out
 
 
 def _quad_surfaces(quad: Quad, label: str, scene: Scene) -> list[_Surface]:
-    v, t = grid_quad(torch.tensor(quad.corners, dtype=torch.float64), quad.element_size)
-    return [_Surface(label, v, t, scene.material_index(quad.material), quad.element_size)]
+    corners = torch.tensor(quad.corners, dtype=torch.float64)
+    v, t = grid_quad(corners, quad.element_size)
+    return [_Surface(label, v, t, scene.material_index(quad.material), quad.element_size, _quad_shell(corners))]
 
 
 # ----------------------------------------------------------------------------------------
@@ -261,10 +273,11 @@ def _mesh_file_surfaces(obj: MeshFile, label: str, scene: Scene) -> list[_Surfac
     out = []
     for k, patch in enumerate(patches):
         used, local = np.unique(faces[patch], return_inverse=True)
-        v, f = _subdivide(vertices[used], local.reshape(-1, 3), obj.element_size)
+        shell = (vertices[used], local.reshape(-1, 3).astype(np.int64))
+        v, f = _subdivide(*shell, obj.element_size)
         name = label if len(patches) == 1 else f"{label}.patch{k}"
         out.append(_Surface(name, torch.from_numpy(v), torch.from_numpy(f), int(face_material[patch[0]]),
-                            obj.element_size))
+                            obj.element_size, shell))
     return out
 
 
@@ -286,18 +299,32 @@ def surface_objects(scene: Scene, mesh: Mesh) -> np.ndarray:
                        for name in mesh.surface_names], dtype=np.int64)
 
 
-def _conform_to_contacts(surfaces: list[_Surface]) -> list[_Surface]:
-    """The surfaces with those others touch meshed anew, and those covered whole dropped."""
-    geometry = [SurfaceGeometry(s.vertices.numpy(), s.triangles.numpy(), s.element_size) for s in surfaces]
+def _remeshed(surfaces: list[_Surface], meshes: list[tuple[np.ndarray, np.ndarray] | None]) -> list[_Surface]:
+    """The surfaces with the new (vertices, triangles) of those ``meshes`` gives (None: as
+    they were), those left with no triangle dropped."""
     out = []
-    for surface, new in zip(surfaces, conform_to_contacts(geometry)):
+    for surface, new in zip(surfaces, meshes):
         if new is None:
             out.append(surface)
         elif len(new[1]):
             v, t = (torch.from_numpy(np.ascontiguousarray(a)) for a in new)
             out.append(_Surface(surface.name, v.to(torch.float64), t.to(torch.int64), surface.material,
-                                surface.element_size))
+                                surface.element_size, surface.shell))
     return out
+
+
+def _geometry(surfaces: list[_Surface]) -> list[SurfaceGeometry]:
+    return [SurfaceGeometry(s.vertices.numpy(), s.triangles.numpy(), s.element_size) for s in surfaces]
+
+
+def _conform_to_contacts(surfaces: list[_Surface]) -> list[_Surface]:
+    """The surfaces with those others touch meshed anew, and those covered whole dropped."""
+    return _remeshed(surfaces, conform_to_contacts(_geometry(surfaces)))
+
+
+def _cut_at_intersections(surfaces: list[_Surface]) -> list[_Surface]:
+    """The surfaces cut where others pass through them, what closed solids hold dropped."""
+    return _remeshed(surfaces, cut_at_intersections(_geometry(surfaces), [s.shell for s in surfaces]))
 
 
 def build_mesh(scene: Scene) -> Mesh:
@@ -308,14 +335,19 @@ def build_mesh(scene: Scene) -> Mesh:
     ``<object>.patch<k>`` for the smooth patches (each of one material) of imported meshes,
     where ``<object>`` is the object's name (the loader names unnamed objects ``objects[i]``).
 
-    With ``scene.meshing.contacts`` (off by default), a planar surface that others touch is
-    meshed conforming to where they touch, what they cover left out
-    (``hemirad.scene.contacts``); a surface they cover whole is left out altogether.
+    With ``scene.meshing.intersections`` (on by default), surfaces are cut where others pass
+    through them and what lies inside a closed solid is left out
+    (``hemirad.scene.intersections``). Then, with ``scene.meshing.contacts`` (off by
+    default), a planar surface that others touch is meshed conforming to where they touch,
+    what they cover left out (``hemirad.scene.contacts``); a surface they cover whole is
+    left out altogether.
     """
     surfaces: list[_Surface] = []
     builders = {Room: _room_surfaces, Box: _box_surfaces, Quad: _quad_surfaces, MeshFile: _mesh_file_surfaces}
     for obj, label in zip(scene.objects, _labels(scene)):
         surfaces.extend(builders[type(obj)](obj, label, scene))
+    if scene.meshing.intersections:
+        surfaces = _cut_at_intersections(surfaces)
     if scene.meshing.contacts:
         surfaces = _conform_to_contacts(surfaces)
 

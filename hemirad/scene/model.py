@@ -249,6 +249,12 @@ class MeshingOptions:
     # sizes it made the Cornell floor beside the blocks worse (README, Contact meshing).
     # False: every surface is meshed on its own, as the paper's figures were.
     contacts: bool = False
+    # Cut surfaces where others pass through them (a lamp's barrel through its globe) and
+    # drop what lies inside a closed solid (``hemirad.scene.intersections``): an element
+    # straddling the other surface, or inside a solid, loses its light to back faces. On
+    # by default: it changes no surface of a scene where nothing cuts through anything
+    # (the bundled scenes, the paper's figures), and costs little where nothing does.
+    intersections: bool = True
 
 
 @dataclass

@@ -15,7 +15,7 @@ MAX_TRIANGLES = 5_000_000
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot",
                 "shooter_split", "cache_mb", "small_receivers")
-_MESHING_KEYS = ("contacts",)
+_MESHING_KEYS = ("contacts", "intersections")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
                 "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds")
 
@@ -90,6 +90,8 @@ def read_meshing(check: Checker, v) -> MeshingOptions:
     opts = MeshingOptions()
     if "contacts" in m:
         opts.contacts = check.boolean(m["contacts"], "meshing.contacts")
+    if "intersections" in m:
+        opts.intersections = check.boolean(m["intersections"], "meshing.intersections")
     return opts
 
 
