@@ -7,7 +7,8 @@ containers) holding::
     {"format": 1,
      "fingerprint": {name: value},   # what the result depends on, see ``fingerprint``
      "solver": {...},                # ProgressiveSolver.state_dict(): mesh, B, dB, ...
-     "run": {"initial_elements": int, "seconds": {"mesh": s, "solve": s}}}
+     "run": {"initial_elements": int, "seconds": {"mesh": s, "solve": s},
+             "answer": {"refiner": {...}, "rounds": [...]}}}  # with refine.criterion answer
 
 torch's format because the state is tensors (float64 kept bit for bit) and
 ``torch.load(weights_only=True)`` reads it back without executing anything a tampered
@@ -242,6 +243,8 @@ def _patches_problem(patches, T: int) -> str | None:
               (patches.get("patch"), "patches.patch", (T,), torch.int64, lambda t: t >= 0, ">= 0")]
     checks += [(patches.get(k), f"patches.{k}", (None,), torch.int64, lambda t: t >= 0, ">= 0")
                for k in ("cut_patches", "cut_sizes", "cut_nodes")]
+    checks += [(patches.get(k), f"patches.{k}", (None, 3), torch.float64, None, "")
+               for k in ("sent", "sent_by_leaf")]
     for check in checks:
         problem = _tensor_problem(*check)
         if problem:

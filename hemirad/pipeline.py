@@ -471,7 +471,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
         raise ValueError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
     if checkpoint is None and (checkpoint_every or resume):
         raise ValueError("checkpoint_every and resume need a checkpoint path")
-    _check_answer_refinement(scene, checkpoint)
+    _check_answer_refinement(scene)
     options = scene.solver
     device = select_device(options.device)
     check_gl_limits(scene, gpu=device.type == "cuda")
@@ -508,7 +508,8 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
             saver = _CheckpointWriter(checkpoint, fingerprint, checkpoint_every, solver, mesh.num_elements, elapsed,
                                       None if saved is None else solver.state.shots)
         if scene.refine.by_answer:
-            rounds, answer_refiner = _refine_by_answer(scene, solver, progress)
+            rounds, answer_refiner = _refine_by_answer(scene, solver, progress, saver,
+                                                       None if saved is None else saved[1], checkpoint)
             state = solver.state
         else:
             state = solver.run(options.max_shots, options.unshot_fraction,
@@ -531,28 +532,41 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
         stats["seconds"]["sensors"] = time.perf_counter() - measured
     return result
 
-def _check_answer_refinement(scene: Scene, checkpoint) -> None:
-    """Refinement judged on the answer needs patches (it regathers what each node sent) and
-    does not yet checkpoint its rounds."""
+def _check_answer_refinement(scene: Scene) -> None:
+    """Refinement judged on the answer needs patches (it regathers what each node sent)."""
     if not scene.refine.by_answer:
         return
     if scene.solver.patch_size in (None, "none"):
         raise _key_error(scene, "refine.criterion", "a per-shot criterion when every element shoots "
                          "(solver.patch_size none)", ANSWER, "Refinement judged on the answer regathers what "
                          "each patch has sent; use solver.patch_size auto, or another criterion.")
-    if checkpoint is not None:
-        raise HemiradInputError("Checkpoints (--checkpoint-every, --resume) are not yet available with "
-                                "refine.criterion answer, whose rounds split the mesh between converged solves; "
-                                "run without them, or with a per-shot criterion.")
 
 
-def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress) -> tuple[list[RoundReport], Refiner]:
+def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: "_CheckpointWriter | None",
+                      run: dict | None, path) -> tuple[list[RoundReport], Refiner]:
     """Shoot to the stopping rule and refine where the answer is worst, in rounds
-    (``adaptive.answer``); returns the rounds and the refiner that split."""
+    (``adaptive.answer``), checkpointed by ``saver`` after shots and after every round's
+    split, and resumed from a checkpoint's ``run`` (read from ``path``); returns the rounds
+    and the refiner that split."""
     options, refine = scene.solver, scene.refine
     refiner = Refiner(refine, solver.emission)
-    reports = refine_by_answer(solver, refiner, refine.max_elements, refine.tolerance, refine.rounds,
-                               lambda: solver.run(options.max_shots, options.unshot_fraction, progress))
+    reports: list[RoundReport] = []
+    if run is not None:
+        try:
+            refiner.load_state_dict(run["answer"]["refiner"])
+            reports += [RoundReport(int(r["round"]), int(r["elements"]), int(r["split"]),
+                                    float(r["estimated_error"]), int(r["shots"])) for r in run["answer"]["rounds"]]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise HemiradInputError(f"cannot resume from {path}: its rounds of refinement judged on the answer "
+                                    f"are missing or do not fit ({exc}). Start without --resume to begin "
+                                    "afresh.") from exc
+    shot_done = progress
+    if saver is not None:
+        saver.answer = lambda: {"refiner": refiner.state_dict(), "rounds": [dataclasses.asdict(r) for r in reports]}
+        shot_done = saver.after_shot(progress)
+    refine_by_answer(solver, refiner, refine.max_elements, refine.tolerance, refine.rounds,
+                     lambda: solver.run(options.max_shots, options.unshot_fraction, shot_done),
+                     report=None if saver is None else (lambda _: saver.save()), reports=reports)
     return reports, refiner
 
 
@@ -565,9 +579,12 @@ class _CheckpointWriter:
                  elapsed: Callable[[], dict], last_saved: int | None):
         self.path, self.fingerprint, self.every, self.solver = path, fingerprint, every, solver
         self.initial_elements, self.elapsed, self.last_saved = initial_elements, elapsed, last_saved
+        self.answer: Callable[[], dict] | None = None  # the rounds of refinement judged on the answer
 
     def save(self) -> None:
         run = {"initial_elements": self.initial_elements, "seconds": self.elapsed()}
+        if self.answer is not None:
+            run["answer"] = self.answer()
         checkpoints.write(self.path, self.fingerprint, self.solver.state_dict(), run)
         self.last_saved = self.solver.state.shots
 

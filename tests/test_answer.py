@@ -4,6 +4,7 @@ splits, and the run's options and statistics."""
 import json
 
 import numpy as np
+import pytest
 import torch
 
 import hemirad
@@ -158,12 +159,56 @@ def _small_cornell(unshot):
     return scene
 
 
-def test_the_answer_needs_patches_and_no_checkpoints(tmp_path, capsys):
+def test_the_answer_needs_patches(tmp_path, capsys):
     from test_cli import one_paragraph_error
 
     err = one_paragraph_error(capsys, ["cornell_box", "-o", str(tmp_path / "a"), "--refine", "pattern2",
                                        "--criterion", "answer", "--patch-size", "none"])
     assert "refine.criterion" in err and "patch" in err
-    err = one_paragraph_error(capsys, ["cornell_box", "-o", str(tmp_path / "b"), "--refine", "pattern2",
-                                       "--criterion", "answer", "--checkpoint-every", "10"])
-    assert "--checkpoint-every" in err
+
+
+def _answer_scene():
+    from test_checkpoint import SMALL_ROOM
+
+    scene = hemirad.load_scene(SMALL_ROOM)  # about 190 elements, hemicube 32
+    scene.solver.max_shots, scene.solver.unshot_fraction = 100000, 1e-3
+    scene.refine.pattern, scene.refine.criterion, scene.refine.rounds = "pattern2", "answer", 2
+    scene.refine.tolerance = 0.0  # the rounds, not the estimate, end it
+    return scene
+
+
+def test_rounds_killed_and_resumed_equal_an_uninterrupted_run(tmp_path):
+    from hemirad import checkpoint as checkpoints
+    from test_checkpoint import assert_identical, stop_after
+
+    full = hemirad.solve(_answer_scene())
+    rounds = full.stats["refine"]["rounds"]
+    assert len(rounds) == 3 and all(r["split"] > 0 for r in rounds[:2])
+    # killed in round 1's shooting and just after round 2's split, each time after the save
+    # that follows a split and before the next one every 5 shots
+    kills = [rounds[0]["shots"] + 2, rounds[1]["shots"] + 1]
+    assert all(k % 5 for k in kills)
+    for kill in kills:
+        path = tmp_path / f"{kill}" / checkpoints.FILENAME
+        path.parent.mkdir()
+        with pytest.raises(KeyboardInterrupt):
+            hemirad.solve(_answer_scene(), progress=stop_after(kill), checkpoint=path, checkpoint_every=5)
+        resumed = hemirad.solve(_answer_scene(), checkpoint=path, checkpoint_every=5, resume=True)
+        assert resumed.stats["resumed_from_shot"] == kill - (2 if kill == kills[0] else 1)  # the split's save
+        assert_identical(resumed, full)
+        assert resumed.stats["refine"]["rounds"] == rounds
+
+
+def test_a_checkpoint_without_its_rounds_is_refused(tmp_path, capsys):
+    from hemirad import checkpoint as checkpoints
+    from test_cli import one_paragraph_error
+
+    path = tmp_path / checkpoints.FILENAME
+    scene = _answer_scene()
+    scene.refine.rounds = 0
+    hemirad.solve(scene, checkpoint=path)
+    state, run = checkpoints.read(path, checkpoints.fingerprint(scene))
+    del run["answer"]
+    checkpoints.write(path, checkpoints.fingerprint(scene), state, run)
+    with pytest.raises(hemirad.HemiradInputError, match="rounds"):
+        hemirad.solve(scene, checkpoint=path, resume=True)

@@ -187,16 +187,20 @@ class RoundReport:
 
 def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elements: int, tolerance: float,
                      rounds: int, shoot_on: Callable[[], None],
-                     report: Callable[[RoundReport], None] | None = None) -> list[RoundReport]:
+                     report: Callable[[RoundReport], None] | None = None,
+                     reports: list[RoundReport] | None = None) -> list[RoundReport]:
     """Alternate shooting to the stopping rule (``shoot_on``) and refining where the answer
     is worst, until the estimated relative error is under ``tolerance``, the mesh has
     ``max_elements``, or ``rounds`` refinements were made. Each round may at most double
     the element count, so the estimate is renewed as the mesh learns.
 
     ``refiner`` supplies the split pattern, the 2:1 grading and the depth and size limits.
-    Returns one report per round (the first is the unrefined solve)."""
-    reports = []
-    for index in range(rounds + 1):
+    ``report`` is called after each round's split. Returns one report per round (the first
+    is the unrefined solve), appended to ``reports`` when given: a run resumed from a
+    checkpoint passes the rounds it had finished and goes on with the next (its solver
+    holds their mesh and light)."""
+    reports = [] if reports is None else reports
+    for index in range(len(reports), rounds + 1):
         shoot_on()
         mesh = solver.mesh
         shown = solver.state.radiosity  # the ambient term is negligible once converged
