@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 import torch
 
-from hemirad.geometry.analytic import parallel_rectangles, perpendicular_rectangles, point_to_polygon
+from hemirad.geometry.analytic import (parallel_rectangles, perpendicular_rectangles, point_to_polygon,
+                                      point_to_triangles, triangle_to_triangles)
 from hemirad.geometry.mesh import Mesh
 from hemirad.transport.formfactor import delta_form_factors, raw_delta_form_factors
 from hemirad.transport.renderer import HemicubeRenderer
@@ -126,3 +127,69 @@ def test_reciprocity_between_two_patches():
     F_ba = float((areas[n_a:, None] * F[n_a:, :n_a]).sum()) / area_b
     assert F_ab > 0.1 and F_ba > 0.1
     assert area_a * F_ab == pytest.approx(area_b * F_ba, rel=0.02)
+
+
+def _rectangle_factor(source, receiver, points):
+    """F from the quad ``source`` (4, 3) to the quad ``receiver``, each split into two
+    triangles wound like the quad, by ``triangle_to_triangles``."""
+    halves = [[0, 1, 2], [0, 2, 3]]
+    s = torch.stack([source[h] for h in halves])
+    r = torch.stack([receiver[h] for h in halves])
+    pairs = triangle_to_triangles(s.repeat_interleave(2, 0), r.repeat(2, 1, 1), points)
+    return float(pairs.sum() / 2)  # the two source halves have equal areas
+
+
+@pytest.mark.parametrize("points,touching,apart", [(4, 3e-3, 5e-5), (8, 3e-4, 3e-9)])
+def test_triangle_to_triangles_reproduces_the_rectangles_closed_forms(points, touching, apart):
+    # Touching (two rectangles sharing an edge at a right angle) and apart (facing, parallel):
+    # the contour integral against Howell's catalog, to the accuracy its Gauss points allow.
+    for h, w, l in [(1, 1, 1), (0.25, 1, 1), (1, 2, 0.5)]:
+        source = quad([0, 0, 0], [l, 0, 0], [0, w, 0])  # faces +z
+        wall = quad([0, 0, 0], [0, 0, h], [l, 0, 0])  # faces +y, along the source's edge y = 0
+        exact = float(perpendicular_rectangles(h, w, l))
+        assert _rectangle_factor(source, wall, points) == pytest.approx(exact, rel=touching)
+    for a, b, c in [(1, 1, 1), (2, 1, 1), (1, 1, 2)]:
+        source = quad([0, 0, 0], [a, 0, 0], [0, b, 0])
+        facing = quad([0, 0, c], [0, b, 0], [a, 0, 0])  # faces -z
+        exact = float(parallel_rectangles(a, b, c))
+        assert _rectangle_factor(source, facing, points) == pytest.approx(exact, rel=apart)
+
+
+def test_triangle_to_triangles_clips_what_faces_away_and_matches_sampling():
+    # Pairs of random triangles that face each other's centroids but may straddle each other's
+    # planes, and the same receivers seen from behind, against Lambert's point factor averaged
+    # over 48^2 points of the source, a point behind the receiver's plane lighting nothing.
+    # Shifted along its own plane, a source lights nothing of its copy.
+    from hemirad.transport.smallreceivers import sample_barycentrics
+
+    g = torch.Generator().manual_seed(3)
+    sources = torch.rand(40, 3, 3, generator=g, dtype=torch.float64)
+    offset = torch.tensor([0.5, 0.3, 0.8], dtype=torch.float64)
+    receivers = torch.rand(40, 3, 3, generator=g, dtype=torch.float64) + offset
+
+    def unit_normals(triangles):
+        return torch.nn.functional.normalize(
+            torch.linalg.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), dim=1)
+
+    def facing(triangles, other):  # wound so that each faces the other's centroid
+        away = ((other.mean(1) - triangles.mean(1)) * unit_normals(triangles)).sum(1) < 0
+        return torch.where(away[:, None, None], triangles[:, [0, 2, 1]], triangles)
+
+    def sampled(sources, receivers):
+        points = torch.einsum("pc,mcd->mpd", sample_barycentrics(48), sources)  # (m, P, 3)
+        normals, r_normals = unit_normals(sources), unit_normals(receivers)
+        out = []
+        for i in range(len(sources)):
+            lambert = point_to_triangles(points[i][:, None, :], normals[i],
+                                         receivers[i][None].expand(len(points[i]), 3, 3))
+            out.append(float((lambert * (((points[i] - receivers[i, 0]) @ r_normals[i]) > 0)).mean()))
+        return torch.tensor(out, dtype=torch.float64)
+
+    sources, receivers = facing(sources, receivers), facing(receivers, sources)
+    for r in (receivers, receivers[:, [0, 2, 1]]):
+        F, expected = triangle_to_triangles(sources, r, 12), sampled(sources, r)
+        assert bool((F >= 0).all())
+        torch.testing.assert_close(F, expected, rtol=0.02, atol=2e-4)
+    assert int((sampled(sources, receivers) > 1e-3).sum()) > 30
+    beside = sources + (sources[:, 1] - sources[:, 0])[:, None]
+    assert float(triangle_to_triangles(sources, beside).abs().max()) == 0.0

@@ -136,9 +136,10 @@ def regather(solver: "ProgressiveSolver", parent: torch.Tensor, split: torch.Ten
         # the node's row for the children only: the per-element scaling below takes the
         # place of the row's own (``small_receiver_form_factors``), and later shots render
         # the few rows they need in full
-        F = solver.shot_row(solver.render(node), among=is_changed)
+        view = solver.render(node)
+        F = solver.shot_row(view, among=is_changed)
         part = F.index_select(0, changed)[:, None] * patches.sent[node]  # (C, 3)
-        near = solver.near_receivers_of(node, F, among=changed)
+        near = solver.near_receivers_of(node, F, among=changed, view=view)
         if near is not None and len(near.rows):
             # near the node, its light as its initial elements sent it (``nearfield``), unscaled
             lo, hi = patches.bounds(node)

@@ -1,13 +1,17 @@
-"""Closed-form form factors (Howell's catalog, Lambert's polygon formula) as torch functions.
+"""Closed-form form factors (Howell's catalog, Lambert's polygon formula) as torch functions,
+and the area-to-area factor between triangles (a contour integral, ``triangle_to_triangles``).
 
 They are the ground truth the hemicube is tested against, and, being torch expressions,
 differentiable: the derivative of the point-to-polygon factor with respect to the point is
-the reference for the gradients of the adaptive mesher.
+the reference for the gradients of the adaptive mesher. The triangles' factor is what a
+shooter's near field sends its neighbours (``transport.nearfield``).
 """
 from __future__ import annotations
 
+import functools
 import math
 
+import numpy as np
 import torch
 
 from hemirad.core.device import as_tensor
@@ -63,19 +67,11 @@ def point_to_polygon(point: torch.Tensor, normal: torch.Tensor, polygon: torch.T
     return ((theta * (cross @ normal) / cross_norm).sum() / (2 * math.pi)).abs()
 
 
-def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
-    """Unoccluded form factors from a differential area to many triangles at once.
-
-    Each triangle is first clipped to the half-space above the point's tangent plane (what a
-    hemicube can see), then Lambert's formula is summed over the clipped polygon's edges.
-
-    Args:
-        point: (3,), or (T, 1, 3) a point per triangle; normal: (3,) unit; triangles: (T, 3, 3).
-    Returns:
-        (T,) form factors, >= 0.
-    """
+def _clip_to_positive(triangles: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The (T, 3, 3) ``triangles`` clipped to where the signed height ``d`` (T, 3), given at
+    their corners and linear along their edges, is positive: (T, 6, 3) the clipped
+    polygons' vertices in order (their first ``count`` slots) and (T, 1) ``count``, 0 to 4."""
     T = len(triangles)
-    d = (triangles - point) @ normal  # (T, 3) heights above the tangent plane
     nxt = torch.tensor([1, 2, 0], device=triangles.device)
     d0, d1 = d, d[:, nxt]
     v0, v1 = triangles, triangles[:, nxt]
@@ -88,7 +84,31 @@ def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: tor
     slot = torch.arange(6, device=triangles.device).expand(T, 6)
     order = torch.argsort(torch.where(valid, slot, slot + 6), dim=1, stable=True)
     polygon = torch.gather(candidates, 1, order[..., None].expand(T, 6, 3))
-    count = valid.sum(1, keepdim=True)  # (T, 1) vertices of the clipped polygon, 0 to 4
+    return polygon, valid.sum(1, keepdim=True)
+
+
+def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
+    """Unoccluded form factors from a differential area to many triangles at once.
+
+    Each triangle is first clipped to the half-space above the point's tangent plane (what a
+    hemicube can see), then Lambert's formula is summed over the clipped polygon's edges.
+
+    Args:
+        point: (3,), or (T, 1, 3) a point per triangle; normal: (3,) unit; triangles: (T, 3, 3).
+    Returns:
+        (T,) form factors, >= 0.
+    """
+    d = (triangles - point) @ normal  # (T, 3) heights above the tangent plane
+    T = len(triangles)
+    # A triangle wholly above needs no clipping: its slots as the clipping would leave them
+    # (the corners, then the unused cuts, each its edge's start: they are masked out below).
+    polygon = triangles[:, [0, 1, 2, 0, 1, 2]]
+    count = torch.full((T, 1), 3, dtype=torch.int64, device=triangles.device)
+    cut = torch.nonzero((d <= 0).any(1)).reshape(-1)
+    if len(cut):
+        clipped, clipped_count = _clip_to_positive(triangles.index_select(0, cut), d.index_select(0, cut))
+        polygon, count = polygon.index_copy(0, cut, clipped), count.index_copy(0, cut, clipped_count)
+    slot = torch.arange(6, device=triangles.device).expand(T, 6)
     following = torch.gather(polygon, 1, ((slot + 1) % count.clamp(min=1))[..., None].expand(T, 6, 3))
     R, R_next = polygon - point, following - point
     cross = torch.linalg.cross(R, R_next)
@@ -98,3 +118,103 @@ def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: tor
     term = torch.where(edge, theta * (cross @ normal) / torch.where(edge, cross_norm, torch.ones_like(cross_norm)),
                        torch.zeros_like(theta))
     return (term.sum(1) / (2 * math.pi)).abs()
+
+
+@functools.lru_cache(maxsize=8)
+def _gauss_legendre(points: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(points,) the Gauss-Legendre nodes on [-1, 1] and their weights, float64 on the CPU."""
+    x, w = np.polynomial.legendre.leggauss(points)
+    return torch.from_numpy(x), torch.from_numpy(w)
+
+
+def _log_distance_to_segment(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, q: torch.Tensor, b: torch.Tensor,
+                             length: torch.Tensor) -> torch.Tensor:
+    """int_0^length ln |P - q - t b| dt for the points P = (x, y, z), each (E, n), and the
+    (E,) segments from q (E, 3) along the unit b (E, 3); exact, and finite where P lies on
+    the segment."""
+    wx, wy, wz = x - q[:, 0:1], y - q[:, 1:2], z - q[:, 2:3]
+    t0 = wx * b[:, 0:1] + wy * b[:, 1:2] + wz * b[:, 2:3]
+    h2 = (wx * wx + wy * wy + wz * wz - t0 * t0).clamp(min=0.0)
+    h = h2.sqrt()
+
+    def antiderivative(u):
+        return 0.5 * torch.xlogy(u, u * u + h2) - u + h * torch.atan2(u, h)
+
+    return antiderivative(length[:, None] - t0) - antiderivative(-t0)
+
+
+def _closed_polygons(triangles: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """(T, 5, 3) the ``triangles`` clipped to positive ``d`` (``_clip_to_positive``) as closed
+    polygons of four edges: slots past the last vertex repeat the first (an empty polygon
+    is five copies of a point), so the unused edges have length 0."""
+    closed = triangles[:, [0, 1, 2, 0, 0]]
+    # the others lie on the positive side, touching at most (a corner at 0 stays a corner)
+    cut = torch.nonzero((d < 0).any(1) | (d <= 0).all(1)).reshape(-1)
+    if len(cut) == 0:
+        return closed
+    polygon, count = _clip_to_positive(triangles.index_select(0, cut), d.index_select(0, cut))
+    k = torch.arange(5, device=triangles.device).expand(len(cut), 5)
+    index = torch.where(k < count, k, torch.zeros_like(k))
+    return closed.index_copy(0, cut, torch.gather(polygon, 1, index[..., None].expand(len(cut), 5, 3)))
+
+
+def triangle_to_triangles(sources: torch.Tensor, receivers: torch.Tensor, points: int = 4,
+                          chunk: int = 1 << 16) -> torch.Tensor:
+    """Unoccluded area-to-area form factors F(s -> r) between pairs of triangles.
+
+    Each source is clipped to the front of its receiver's plane and each receiver to the
+    front of its source's plane (no point elsewhere sees the other's front), then the double
+    contour integral of Stokes' theorem (Sparrow 1963),
+
+        A_s F(s -> r) = 1/(2 pi) sum_{edges i of s, j of r} (a_i . b_j) int_i int_j ln|x - y| dy dx,
+
+    with a_i, b_j the edges' unit directions, is evaluated with the inner integral in closed
+    form and the outer by Gauss-Legendre along each source edge. Triangles that touch (a
+    shared edge or corner) are handled as well as distant ones: the inner integral stays
+    finite and the outer's integrand continuous.
+
+    Args:
+        sources, receivers: (m, 3, 3) the pairs' corners, each wound about its front's normal.
+        points: Gauss points along each source edge. Measured on a box's elements against
+            16 points: pairs that touch 2% at 3 points, 0.7% at 4, 0.05% at 8; pairs apart
+            by half a side or more, 0.05% at 3, 0.01% at 4.
+        chunk: edge pairs times points evaluated at once.
+    Returns:
+        (m,) F(s -> r) >= 0; 0 for coplanar pairs and pairs that face away.
+    """
+    m, device = len(sources), sources.device
+    cross_s = torch.linalg.cross(sources[:, 1] - sources[:, 0], sources[:, 2] - sources[:, 0])
+    area_s = 0.5 * torch.linalg.vector_norm(cross_s, dim=1)
+    normal_s = cross_s / (2.0 * area_s.clamp(min=1e-300))[:, None]
+    cross_r = torch.linalg.cross(receivers[:, 1] - receivers[:, 0], receivers[:, 2] - receivers[:, 0])
+    normal_r = cross_r / torch.linalg.vector_norm(cross_r, dim=1).clamp(min=1e-300)[:, None]
+    # heights above the other's plane (dot products as batched products: much faster than sums over 3)
+    heights = torch.cat([torch.bmm(sources - receivers[:, :1], normal_r[:, :, None])[..., 0],
+                         torch.bmm(receivers - sources[:, :1], normal_s[:, :, None])[..., 0]])
+    # a height within rounding of 0 is 0: a corner on the other's plane, or a coplanar pair (then empty)
+    size = (torch.cat([sources, receivers]) - torch.cat([receivers, sources])[:, :1]).abs().amax((1, 2))
+    heights = torch.where(heights.abs() <= 1e-12 * size[:, None], 0.0, heights)
+    S, R = _closed_polygons(torch.cat([sources, receivers]), heights).split(m)
+    p, dp = S[:, :4], S[:, 1:] - S[:, :4]  # (m, 4, 3) source edges
+    q, dq = R[:, :4], R[:, 1:] - R[:, :4]
+    L, M = torch.linalg.vector_norm(dp, dim=-1), torch.linalg.vector_norm(dq, dim=-1)
+    a = dp / L.clamp(min=1e-300)[..., None]
+    b = dq / M.clamp(min=1e-300)[..., None]
+    along = torch.bmm(a, b.transpose(1, 2))  # (m, 4, 4) a_i . b_j
+    # only the edge pairs that contribute: both of some length, not at right angles
+    pair, i, j = torch.nonzero((L[:, :, None] > 0) & (M[:, None, :] > 0) & (along.abs() > 1e-12), as_tuple=True)
+    source_edge, receiver_edge = pair * 4 + i, pair * 4 + j  # into the (4 m,) flattened edges
+    p, a, L = p.reshape(-1, 3), a.reshape(-1, 3), L.reshape(-1)
+    q, b, M = q.reshape(-1, 3), b.reshape(-1, 3), M.reshape(-1)
+    weight = along.reshape(-1).index_select(0, source_edge * 4 + j) * 0.5 * L.index_select(0, source_edge)
+    x, w = (t.to(device) for t in _gauss_legendre(points))
+    total = torch.zeros(m, dtype=sources.dtype, device=device)
+    step = max(1, chunk // points)
+    for start in range(0, len(pair), step):
+        se, re = source_edge[start:start + step], receiver_edge[start:start + step]
+        s = (0.5 * (x + 1.0)) * L.index_select(0, se)[:, None]  # (E, n) the nodes along the source edge
+        origin, direction = p.index_select(0, se), a.index_select(0, se)
+        X, Y, Z = (origin[:, c:c + 1] + s * direction[:, c:c + 1] for c in range(3))
+        inner = _log_distance_to_segment(X, Y, Z, q.index_select(0, re), b.index_select(0, re), M.index_select(0, re))
+        total.index_add_(0, pair[start:start + step], (inner @ w) * weight[start:start + step])
+    return (total / (2.0 * math.pi * area_s.clamp(min=1e-300))).clamp(min=0.0)

@@ -20,6 +20,7 @@ from hemirad.geometry.split import GrowingRows
 from hemirad.scene.model import SMALL_RECEIVER_CHOICES
 from hemirad.transport.gl import GLContext
 from hemirad.transport.hemicube import OFF_AXIS_TANGENT
+from hemirad.transport.nearfield import TOTALS as NEAR_TOTALS
 from hemirad.transport.nearfield import NearReceivers, incident_power, near_receivers
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
@@ -34,7 +35,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
-ARITHMETIC = 2
+ARITHMETIC = 3
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
@@ -136,8 +137,11 @@ class ProgressiveSolver:
             receive later, rho_s times the ambient term (Feda & Purgathofer 1992), and keeps
             it as negative unshot radiosity; power stays conserved exactly and the solve
             converges in fewer shots.
-        near_reach: with patches, the receivers within this many patch radii of a patch's
-            centroid get its light spread as its elements send it (``nearfield``); 0: none.
+        near_reach: the receivers within this many shooter radii of a shooter's centroid
+            get its light as its initial elements send it (``nearfield``); 0: none. Without
+            patches, as each element sends it (the paper's configuration has none).
+        near_totals: how much of a source's light its near receivers take
+            (``nearfield.TOTALS``): G's hemicube's total, or the source's own.
         refine_shots: with a refiner, refine during the first this many shots only, then
             shoot on the mesh they made; None: every shot.
         cache_bytes: memory for the form-factor rows of shooters that shot
@@ -158,6 +162,7 @@ class ProgressiveSolver:
     def __init__(self, mesh: Mesh, reflectance: torch.Tensor, emission: torch.Tensor, resolution: int,
                  refiner: ShotRefiner | None = None, cull: bool = True, cache_bytes: int = DEFAULT_CACHE_BYTES,
                  patches: PatchShooters | None = None, overshoot: bool = False, near_reach: float = 0.0,
+                 near_totals: str = "hemicube",
                  refine_shots: int | None = None, device: torch.device | str = "cpu",
                  small_receivers: str = "pixels"):
         self.device = torch.device(device)
@@ -178,8 +183,14 @@ class ProgressiveSolver:
         self.rows = FormFactorRows(cache_bytes)
         self.patches = patches
         self.overshoot = overshoot and patches is not None
-        self.near_reach = near_reach if patches is not None else 0.0
+        if near_totals not in NEAR_TOTALS:
+            raise ValueError(f"near_totals must be one of {', '.join(NEAR_TOTALS)}, not {near_totals!r}")
+        self.near_reach, self.near_totals = near_reach, near_totals
         self._near: dict[int, NearReceivers] = {}
+        self._views: dict[int, HemicubeView] = {}  # rendered for shooters whose near field is not made yet
+        self._leaf_corners = None
+        if patches is not None:  # the initial elements' corners by leaf position: the near field's sources
+            self._leaf_corners = mesh.corners.index_select(0, torch.argsort(patches.tree.leaf.to(self.device)))
 
     def close(self) -> None:
         self.renderer.close()
@@ -249,6 +260,7 @@ class ProgressiveSolver:
         self.renderer.set_geometry(mesh)
         self.rows.clear()
         self._near.clear()
+        self._views.clear()
         if self.patches is not None:
             self.patches.inherit(parent)
 
@@ -269,7 +281,13 @@ class ProgressiveSolver:
             return None
         F = self._shot_form_factors(shooter, shot_power)
         with self.profiler.phase("update"):
-            self._commit(shooter, shot_power, F)
+            near = self.near_receivers_of(shooter, F)
+            if near is None:
+                self._commit(shooter, shot_power, F)
+            else:
+                self._receive_incident(incident_power(F, shot_power, near, shot_power[None]), shot_power)
+                self.state.unshot[shooter] = 0.0
+                self.state.shots += 1
         return shooter
 
     def _shoot_patch(self) -> int | None:
@@ -307,6 +325,7 @@ class ProgressiveSolver:
             with self.profiler.phase("update"):
                 near = self.near_receivers_of(node, F)
                 self._receive_incident(incident_power(F, shot_power, near, leaf_power), shot_power)
+        self._views.clear()
         state.shots += 1
         return patch
 
@@ -316,13 +335,17 @@ class ProgressiveSolver:
         refiner = self.active_refiner
         if refiner is None:
             return self.form_factors_of(shooter)
-        return self.shot_row(refiner.shoot(self, shooter, shot_power))
+        view = refiner.shoot(self, shooter, shot_power)
+        self._keep_view(shooter, view)
+        return self.shot_row(view)
 
     def form_factors_of(self, shooter: int) -> torch.Tensor:
         """(T,) F_sj from ``shooter`` on the current mesh: its kept row, else rendered (and kept)."""
         F = self.rows.get(shooter, self.mesh.num_elements)
         if F is None:
-            F = self.shot_row(self.render(shooter))
+            view = self.render(shooter)
+            self._keep_view(shooter, view)
+            F = self.shot_row(view)
             self.rows.put(shooter, F)
         return F
 
@@ -339,8 +362,14 @@ class ProgressiveSolver:
     def render_and_keep(self, shooter: int) -> HemicubeView:
         """``render(shooter)``, its ``shot_row`` kept for the shooter's shots."""
         view = self.render(shooter)
+        self._keep_view(shooter, view)
         self.rows.put(shooter, self.shot_row(view))
         return view
+
+    def _keep_view(self, shooter: int, view: HemicubeView) -> None:
+        """Keep what ``shooter``'s hemicube saw until its near field is made from it."""
+        if self.near_reach > 0 and shooter not in self._near:
+            self._views[shooter] = view
 
     def _commit(self, shooter: int, shot_power: torch.Tensor, F: torch.Tensor) -> None:
         """Hand every receiver what the shot of ``shot_power`` (3,) with form factors F (T,)
@@ -350,27 +379,39 @@ class ProgressiveSolver:
         self.state.shots += 1
 
     def _spreads(self, node: int) -> bool:
-        """Whether ``node``'s light to its near receivers is spread by its initial elements:
-        there is a near field, and the node has more than one element."""
-        lo, hi = self.patches.bounds(node)
-        return self.near_reach > 0 and hi - lo > 1
+        """Whether ``node``'s (with patches; else the element's) light to its near receivers
+        is sent as its initial elements send it: there is a near field."""
+        return self.near_reach > 0
 
-    def near_receivers_of(self, node: int, F: torch.Tensor, among: torch.Tensor | None = None
-                          ) -> NearReceivers | None:
-        """The receivers near ``node`` whose light its initial elements spread (``nearfield``),
-        kept while the mesh is unchanged; None where it ``_spreads`` nothing. With ``among``
-        (R,), only those among these elements, and not kept."""
-        if not self._spreads(node):
+    def near_receivers_of(self, shooter: int, F: torch.Tensor, among: torch.Tensor | None = None,
+                          view: HemicubeView | None = None) -> NearReceivers | None:
+        """The receivers near ``shooter`` (a node; without patches, an element) that get its
+        light as its initial elements send it (``nearfield``), kept while the mesh is
+        unchanged; None where it ``_spreads`` nothing. ``view``: what the hemicube that gave
+        the row F (T,) saw (default: the one rendered for this shot, else a new render).
+        With ``among`` (R,), only those among these elements, unscaled, and not kept."""
+        if not self._spreads(shooter):
             return None
-        if among is None and node in self._near:
-            return self._near[node]
-        tree = self.patches.tree
-        lo, hi = self.patches.bounds(node)
-        sources = tree.centroid.index_select(0, tree.leaf_node[lo:hi]).to(self.device)
-        near = near_receivers(self.mesh, self.patches.members(node), sources, tree.centroid[node].to(self.device),
-                              tree.normal[node].to(self.device), F, self.near_reach, among)
+        if among is None and shooter in self._near:
+            return self._near[shooter]
+        if view is None:
+            view = self._views.pop(shooter, None)
+        if view is None:
+            view = self.render(shooter)
+        if self.patches is None:  # the element is its own source
+            members = torch.tensor([shooter], device=self.device)
+            sources = self.mesh.corners_of(members)
+            point, normal = self.mesh.centroids[shooter], self.mesh.normals[shooter]
+        else:
+            tree = self.patches.tree
+            members = self.patches.members(shooter)
+            lo, hi = self.patches.bounds(shooter)
+            sources = self._leaf_corners[lo:hi]
+            point, normal = tree.centroid[shooter].to(self.device), tree.normal[shooter].to(self.device)
+        near = near_receivers(self.mesh, members, sources, point, normal, view, F, self.near_reach,
+                              self.near_totals, among)
         if among is None:
-            self._near[node] = near
+            self._near[shooter] = near
         return near
 
     def _receive_incident(self, incident: torch.Tensor, shot_power: torch.Tensor) -> None:
@@ -462,6 +503,7 @@ class ProgressiveSolver:
         if self.patches is not None:
             self.patches.load_state_dict(state["patches"], T)
         self._near.clear()
+        self._views.clear()
         self.renderer.set_geometry(mesh)
         self.rows.clear()
         self.profiler.load_state_dict(timings)
