@@ -199,9 +199,8 @@ def test_rounds_killed_and_resumed_equal_an_uninterrupted_run(tmp_path):
         assert resumed.stats["refine"]["rounds"] == rounds
 
 
-def test_a_checkpoint_without_its_rounds_is_refused(tmp_path, capsys):
+def test_a_checkpoint_without_its_rounds_is_refused(tmp_path):
     from hemirad import checkpoint as checkpoints
-    from test_cli import one_paragraph_error
 
     path = tmp_path / checkpoints.FILENAME
     scene = _answer_scene()

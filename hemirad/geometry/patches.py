@@ -34,7 +34,6 @@ class PatchTree:
         centroid, normal: (N, 3) float64 where a node shoots from: the area-weighted centroid
             of its elements (on a curved surface, ``_TreeBuilder._eye_point``) and their
             plane's unit normal.
-        leaf_node: (T,) int64 the node of each leaf position (a single initial element).
     """
 
     leaf: torch.Tensor
@@ -46,7 +45,6 @@ class PatchTree:
     child_ids: torch.Tensor
     centroid: torch.Tensor
     normal: torch.Tensor
-    leaf_node: torch.Tensor
 
     @property
     def num_patches(self) -> int:
@@ -191,7 +189,6 @@ class _TreeBuilder:
         self.centroids, self.normals, self.areas = centroids, normals, areas
         self.corners, self.plane_ids = corners, plane_ids
         self.leaf_order: list[int] = []
-        self.leaf_nodes: list[int] = []
         self.rows: list[list] = []  # per node: lo, hi, children, centroid, normal
 
     def node(self, members: np.ndarray, u: np.ndarray, v: np.ndarray) -> int:
@@ -201,7 +198,6 @@ class _TreeBuilder:
         if len(members) == 1:
             e = int(members[0])
             self.leaf_order.append(e)
-            self.leaf_nodes.append(index)
             self.rows[index] = [lo, lo + 1, [], self.centroids[e], self.normals[e]]
             return index
         parts = _quadrants(self.centroids[members] @ np.stack([u, v]).T)
@@ -234,8 +230,7 @@ class _TreeBuilder:
         f64 = dict(dtype=torch.float64)
         return PatchTree(torch.from_numpy(leaf), torch.from_numpy(patch), torch.from_numpy(roots),
                          torch.tensor(lo), torch.tensor(hi), torch.from_numpy(child_start), torch.from_numpy(child_ids),
-                         torch.tensor(np.stack(centroid), **f64), torch.tensor(np.stack(normal), **f64),
-                         torch.tensor(self.leaf_nodes, dtype=torch.int64))
+                         torch.tensor(np.stack(centroid), **f64), torch.tensor(np.stack(normal), **f64))
 
 
 def _quadrants(xy: np.ndarray) -> list[np.ndarray]:
