@@ -139,8 +139,8 @@ def _curved_cells(members: np.ndarray, owner: np.ndarray, centroids: np.ndarray,
                   areas: np.ndarray, corners: np.ndarray, patch_size: np.ndarray
                   ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The patches of curved surfaces from their (m,) elements, each alone on its plane: per
-    object (``owner`` (T,)), those whose centroids share a cube of the grid of side the surface's median patch
-    size, and whose normals lie within ``CURVED_PATCH_CONE`` of the cube's largest element's
+    object (``owner`` (T,)), those whose centroids share a cube of the grid of side the
+    object's median patch size, and whose normals lie within ``CURVED_PATCH_CONE`` of the cube's largest element's
     (one hemicube along their mean normal then stands in for them as it does for a plane
     patch; a sphere's cube holds a cap, a thin shell's two sides part). Where another object
     passes through such a group's bounding box, its elements shoot alone: a lamp's globe
@@ -153,7 +153,7 @@ def _curved_cells(members: np.ndarray, owner: np.ndarray, centroids: np.ndarray,
         group = members[owner[members] == s]
         size = float(np.median(patch_size[group]))
         if size <= 0:  # patches turned off: every element shoots alone
-            out += [(group[i:i + 1], *plane_axes(normals[group[i]])) for i in range(len(group))]
+            out += _each_alone(group, normals)
             continue
         cell = np.floor((centroids[group] - centroids[group].min(0)) / size).astype(np.int64)
         _, key = np.unique(cell, axis=0, return_inverse=True)
@@ -165,11 +165,16 @@ def _curved_cells(members: np.ndarray, owner: np.ndarray, centroids: np.ndarray,
                 part = left[within]
                 left = left[~within]
                 if len(part) > 1 and _crossed(part, s, owner, low, high):
-                    out += [(part[i:i + 1], *plane_axes(normals[part[i]])) for i in range(len(part))]
+                    out += _each_alone(part, normals)
                     continue
                 normal = (normals[part] * areas[part, None]).sum(0)
                 out.append((part, *plane_axes(normal / np.linalg.norm(normal))))
     return out
+
+
+def _each_alone(elements: np.ndarray, normals: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """A patch of one element for each of ``elements`` (k,), with its own plane's axes."""
+    return [(elements[i:i + 1], *plane_axes(normals[elements[i]])) for i in range(len(elements))]
 
 
 def _crossed(part: np.ndarray, own: int, owner: np.ndarray, low: np.ndarray, high: np.ndarray) -> bool:
