@@ -201,6 +201,20 @@ def test_which_surfaces_make_solids():
     assert inside.tolist() == [True, False, False, False]  # on the surface counts as outside
 
 
+def ell_prism():
+    """(vertices, faces) of an L-shaped prism 1 high, faces outwards, triangulated by hand
+    (trimesh's extrusion needs a triangulation engine the test environment need not have)."""
+    outline = np.array([(0, 0), (2, 0), (2, 1), (1, 1), (1, 2), (0, 2)], dtype=np.float64)  # counter-clockwise
+    n = len(outline)
+    vertices = np.concatenate([np.c_[outline, np.zeros(n)], np.c_[outline, np.ones(n)]])
+    cap = [(0, 1, 2), (0, 2, 3), (0, 3, 4), (0, 4, 5)]  # a fan from the corner that sees the whole L
+    faces = [(a + n, b + n, c + n) for a, b, c in cap] + [(a, c, b) for a, b, c in cap]
+    for a in range(n):
+        b = (a + 1) % n
+        faces += [(a, b, b + n), (a, b + n, a + n)]
+    return vertices, np.asarray(faces, dtype=np.int64)
+
+
 def test_what_a_solid_holds():
     """Inside a box, an L of two boxes (concave: a ray from its inner corner crosses it
     three times) and a sphere of 1,280 triangles; on the surface is outside."""
@@ -208,8 +222,7 @@ def test_what_a_solid_holds():
     points = np.array([[0.5, 0.5, 0.5], [0.01, 0.99, 0.5], [1.5, 0.5, 0.5], [-3, 7, 2], [1.0, 0.5, 0.5], [0, 0, 0]])
     assert box.contains(points, 1e-9).tolist() == [True, True, False, False, False, False]
     # an L: [0, 2] x [0, 1] and [0, 1] x [1, 2] in (x, y), from z = 0 to 1
-    ell = trimesh.creation.extrude_polygon(shapely.Polygon([(0, 0), (2, 0), (2, 1), (1, 1), (1, 2), (0, 2)]), 1.0)
-    solid = closed_solids([(np.asarray(ell.vertices), np.asarray(ell.faces))], 1e-9)[0]
+    solid = closed_solids([ell_prism()], 1e-9)[0]
     points = np.array([[0.5, 1.5, 0.5], [1.5, 0.5, 0.5], [1.5, 1.5, 0.5], [1.2, 1.2, 0.5], [0.9, 1.1, 0.5]])
     assert solid.contains(points, 1e-9).tolist() == [True, True, False, False, True]
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
