@@ -47,8 +47,8 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
     options = scene.solver
     patches = None
     if options.patch_size not in (None, "none"):
-        owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]
-        tree = build_patches(mesh, patch_sizes(scene, mesh), owner)
+        owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]  # (T,) each element's object
+        tree = build_patches(mesh, patch_sizes(scene, mesh, owner), owner)
         test = hidden_centroid_test()
         if options.shooter_split is not None:
             test = either(test, point_source_test(options.shooter_split))
@@ -60,9 +60,10 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
                              small_receivers=scene.refine.resolved_small_receivers(options.small_receivers))
 
 
-def patch_sizes(scene: Scene, mesh: Mesh) -> np.ndarray:
-    """(T,) the patch side each element asks for: its object's ``patch_size``, else the
-    solver's; ``auto`` is ``AUTO_PATCH_ELEMENTS`` element sides, ``none`` 0 (it shoots alone)."""
+def patch_sizes(scene: Scene, mesh: Mesh, owner: np.ndarray) -> np.ndarray:
+    """(T,) the patch side each element asks for: its object's (``owner`` (T,), the index in
+    ``scene.objects`` of each element's) ``patch_size``, else the solver's; ``auto`` is
+    ``AUTO_PATCH_ELEMENTS`` element sides, ``none`` 0 (it shoots alone)."""
     asked = [obj.patch_size if obj.patch_size is not None else scene.solver.patch_size for obj in scene.objects]
     # per object: a multiple of the element side (auto) and a length (a number), one of them 0
     factor = np.asarray([AUTO_PATCH_ELEMENTS if size == "auto" else 0.0 for size in asked])
@@ -70,5 +71,4 @@ def patch_sizes(scene: Scene, mesh: Mesh) -> np.ndarray:
     # A mesh file's triangles may be finer than its element_size (they are split only when
     # coarser): its auto patches are about 2 x 2 elements of that size, not of its triangles
     nominal = np.asarray([obj.element_size if isinstance(obj, MeshFile) else 0.0 for obj in scene.objects])
-    obj = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]  # (T,)
-    return factor[obj] * np.maximum(element_sides(mesh), nominal[obj]) + length[obj]
+    return factor[owner] * np.maximum(element_sides(mesh), nominal[owner]) + length[owner]

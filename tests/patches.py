@@ -74,3 +74,10 @@ def refined_solve(scene_name: str, shots: int, resolution: int = 64, **solver_op
     finally:
         solver.close()
     return solver
+
+
+def assert_same_mesh(a, b):
+    """Two meshes are the same, bit for bit: vertices, triangles, surfaces, materials, names."""
+    for field in ("vertices", "triangles", "surface", "material"):
+        assert torch.equal(getattr(a, field), getattr(b, field)), field
+    assert a.surface_names == b.surface_names
