@@ -55,7 +55,7 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
         patches = PatchShooters(tree, device, test)
     return ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner, cull=cull,
                              cache_bytes=int(options.cache_mb * (1 << 20)), patches=patches,
-                             overshoot=options.overshoot, near_reach=NEAR_REACH if patches is not None else 0.0,
+                             overshoot=options.overshoot, sweeps=options.sweeps, near_reach=NEAR_REACH if patches is not None else 0.0,
                              refine_shots=scene.refine.shots if refiner is not None else None, device=device,
                              small_receivers=scene.refine.resolved_small_receivers(options.small_receivers))
 

@@ -95,7 +95,7 @@ def fingerprint(scene: Scene) -> dict[str, object]:
         "meshing.contacts": scene.meshing.contacts,
         "meshing.intersections": scene.meshing.intersections,
         **{f"solver.{k}": getattr(scene.solver, k)
-           for k in ("patch_size", "overshoot", "shooter_split", "small_receivers")},
+           for k in ("patch_size", "overshoot", "sweeps", "shooter_split", "small_receivers")},
         **{f"refine.{k}": getattr(scene.refine, k) for k in _REFINE_FIELDS},
     }
 

@@ -572,7 +572,8 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
 
 class _CheckpointWriter:
     """Writes a solve's checkpoint every ``every`` shots (counted from the run's start,
-    resumed or not; 0 for never) and when it ends, with the run's initial element count and
+    resumed or not; 0 for never: after the report whose shots pass a multiple of it, as a
+    sweep of many patches' shots may) and when it ends, with the run's initial element count and
     its seconds so far (``elapsed()``)."""
 
     def __init__(self, path, fingerprint: str, every: int, solver: ProgressiveSolver, initial_elements: int,
@@ -593,9 +594,13 @@ class _CheckpointWriter:
         if not self.every:
             return progress
 
+        previous = self.solver.state.shots
+
         def on_shot(report: ShotReport) -> None:
-            if report.shots % self.every == 0:
+            nonlocal previous
+            if report.shots // self.every > previous // self.every:
                 self.save()
+            previous = report.shots
             if progress is not None:
                 progress(report)
 
@@ -621,6 +626,7 @@ def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_element
         "elements_per_level": torch.bincount(final.level).tolist(),
         "surfaces": len(final.surface_names),
         "shots": state.shots,
+        "sweeps": solver.sweep_count,  # each of many patches' shots at once (``solver.sweeps``)
         "patches": solver.patches.tree.num_patches if solver.patches is not None else None,
         "shooter_splits": solver.patches.shooter_splits if solver.patches is not None else 0,
         "hemicubes_rendered": solver.renderer.renders,

@@ -74,7 +74,7 @@ def measure(scene_path: Path, points_path: Path, args) -> dict:
         "max": float(np.abs(error).max()), "bias": float(error.mean()),
     }
     if profile:
-        pstats.Stats(profile).sort_stats("tottime").print_stats(25)
+        pstats.Stats(profile).sort_stats(args.sort).print_stats(40)
     return report
 
 
@@ -87,6 +87,7 @@ def main() -> None:
     parser.add_argument("--patch-size", default=None, help="auto, none or a side length (default: the scene's)")
     parser.add_argument("--resolution", type=int, default=None)
     parser.add_argument("--profile", action="store_true", help="print where the solve's time goes")
+    parser.add_argument("--sort", default="tottime", help="the profile's order (pstats keys: tottime, cumulative, ...)")
     args = parser.parse_args()
     scene_path = args.room / args.scene if args.scene else next(args.room.glob("*.yaml"))
     points_path = args.points or next(p for p in sorted(args.room.parent.glob("*.npz")))

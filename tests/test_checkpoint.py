@@ -22,8 +22,10 @@ REFINE = {"pattern": "pattern2", "threshold": 1e-3, "max_depth": 2}
 
 
 def scene(shots: int = 24, refine: bool = False, **solver):
+    """The small room for ``shots`` shots; one patch a shot unless ``sweeps=True`` is passed,
+    so that a run can stop at any shot."""
     s = hemirad.load_scene(SMALL_ROOM)  # hemicube resolution 32
-    s.solver = dataclasses.replace(s.solver, max_shots=shots, unshot_fraction=0.0, **solver)
+    s.solver = dataclasses.replace(s.solver, **{"max_shots": shots, "unshot_fraction": 0.0, "sweeps": False, **solver})
     if refine:
         s.refine = dataclasses.replace(s.refine, **REFINE)
     return s
@@ -68,6 +70,26 @@ def test_killed_and_resumed_run_equals_an_uninterrupted_one(refine, uninterrupte
         assert full.stats["refine"]["splits"] > 0 and full.stats["elements"] > full.stats["initial_elements"]
     assert_identical(resumed, full)
     assert checkpoints.saved_shots(path) == 24  # the end of the run is saved too
+
+
+def test_a_run_of_sweeps_killed_and_resumed_equals_an_uninterrupted_one(tmp_path):
+    full = hemirad.solve(scene(shots=100000, sweeps=True, unshot_fraction=1e-3))
+    reports = []
+    hemirad.solve(scene(shots=100000, sweeps=True, unshot_fraction=1e-3), progress=reports.append)
+    assert len(reports) > 6 and full.stats["sweeps"] == len(reports)
+    assert reports[2].shots - reports[1].shots > 10  # a sweep is many patches' shots
+    path = tmp_path / checkpoints.FILENAME
+    # saved after the 5th sweep (its shots pass the cadence, the 6th's do not), killed after
+    # the 6th: the resumed run redoes the 6th
+    every = reports[4].shots
+    with pytest.raises(KeyboardInterrupt):
+        hemirad.solve(scene(shots=100000, sweeps=True, unshot_fraction=1e-3), progress=stop_after(reports[5].shots),
+                      checkpoint=path, checkpoint_every=every)
+    assert checkpoints.saved_shots(path) == reports[4].shots
+    resumed = hemirad.solve(scene(shots=100000, sweeps=True, unshot_fraction=1e-3), checkpoint=path,
+                            checkpoint_every=every, resume=True)
+    assert resumed.stats["resumed_from_shot"] == reports[4].shots
+    assert_identical(resumed, full)
 
 
 def test_a_finished_run_continues_with_more_shots(uninterrupted, tmp_path):
@@ -208,13 +230,14 @@ def test_solve_needs_a_path_to_checkpoint():
 
 
 def interrupt_at(monkeypatch, k: int):
-    """Make the solver raise KeyboardInterrupt in the middle of shot k, as Ctrl-C would."""
+    """Make the solver raise KeyboardInterrupt in the middle of shot k (or of the sweep that
+    would pass it), as Ctrl-C would."""
     shoot = ProgressiveSolver.shoot
 
-    def shoot_until(self):
-        if self.state.shots + 1 == k:
+    def shoot_until(self, limit=None):
+        if self.state.shots + 1 >= k:
             raise KeyboardInterrupt
-        return shoot(self)
+        return shoot(self, limit)
 
     monkeypatch.setattr(ProgressiveSolver, "shoot", shoot_until)
 

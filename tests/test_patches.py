@@ -149,16 +149,21 @@ def test_two_patch_sizes_give_the_same_cornell_box():
 
 def test_patches_converge_in_fewer_shots_and_renders_than_elements():
     counts = {}
-    for size in (None, "auto"):
+    for size, sweeps in ((None, False), ("auto", False), ("auto", True)):
         scene = hemirad.load_scene("floating")
         scene.solver.patch_size, scene.solver.resolution, scene.solver.unshot_fraction = size, 32, 1e-2
+        scene.solver.sweeps = sweeps
         solver = make_solver(scene)
         try:
             solver.run(scene.solver.max_shots, scene.solver.unshot_fraction)
-            counts[size] = (solver.state.shots, solver.renderer.renders)
+            counts[size, sweeps] = (solver.state.shots, solver.renderer.renders, solver.sweep_count)
         finally:
             solver.close()
-    assert counts["auto"][0] < counts[None][0] / 4 and counts["auto"][1] < counts[None][1] / 2
+    elements = counts[None, False]
+    assert counts["auto", False][0] < elements[0] / 4 and counts["auto", False][1] < elements[1] / 2
+    # sweeps: no more renders than one patch at a time, and a few dozen steps instead of
+    # thousands of shots
+    assert counts["auto", True][1] <= counts["auto", False][1] and counts["auto", True][2] < elements[0] / 50
 
 
 def test_a_split_emitter_draws_the_penumbra_a_centroid_shot_cannot():

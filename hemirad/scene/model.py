@@ -157,6 +157,9 @@ class SolverOptions:
     # or None: every element shoots (the paper's configuration).
     patch_size: float | str | None = "auto"
     overshoot: bool = True  # with patches: shoot rho times the ambient more (Feda & Purgathofer)
+    # with patches: every patch with unshot power shoots at once from the kept light (Jacobi
+    # sweeps) instead of the strongest alone, whenever no refiner runs the shots
+    sweeps: bool = True
     shooter_split: float | None = None  # with patches: split a shooter where eq. 7 exceeds this share
     cache_mb: float = 256.0  # memory for form-factor rows kept between a shooter's shots
     # How receivers covering few hemicube pixels get their form factors: one of
@@ -166,7 +169,7 @@ class SolverOptions:
     def paper(self) -> None:
         """Shoot as the paper does: every element, from its centroid, no overshooting, each
         receiver's form factor its pixels' sum."""
-        self.patch_size, self.overshoot, self.shooter_split = None, False, None
+        self.patch_size, self.overshoot, self.shooter_split, self.sweeps = None, False, None, False
         self.small_receivers = "pixels"
 
 

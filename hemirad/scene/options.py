@@ -13,7 +13,7 @@ from hemirad.scene.model import (CRITERION_NAMES, SMALL_RECEIVER_CHOICES, Camera
 MAX_TRIANGLES = 5_000_000
 
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
-_SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot",
+_SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot", "sweeps",
                 "shooter_split", "cache_mb", "small_receivers")
 _MESHING_KEYS = ("contacts", "intersections")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
@@ -73,6 +73,8 @@ def read_solver(check: Checker, v) -> SolverOptions:
         opts.patch_size = read_patch_size(check, m["patch_size"], "solver.patch_size")
     if "overshoot" in m:
         opts.overshoot = check.boolean(m["overshoot"], "solver.overshoot")
+    if "sweeps" in m:
+        opts.sweeps = check.boolean(m["sweeps"], "solver.sweeps")
     if "shooter_split" in m:
         value = m["shooter_split"]
         opts.shooter_split = None if value in (None, "none") else check.bounded(

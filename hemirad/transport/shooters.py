@@ -97,6 +97,12 @@ class PatchShooters:
         self.sent[node] += member_power.sum(0)
         self.sent_by_leaf.index_add_(0, self.leaf.index_select(0, members), member_power)
 
+    def record_sweep(self, node_of_leaf: torch.Tensor, leaf_power: torch.Tensor) -> None:
+        """Count a sweep in which every initial element shot (T0, 3) ``leaf_power`` (by leaf
+        position) from its node ``node_of_leaf`` (T0,; -1 where it shot nothing)."""
+        self.sent.index_add_(0, node_of_leaf.clamp(min=0), leaf_power)
+        self.sent_by_leaf += leaf_power
+
     def strongest(self, power: torch.Tensor) -> int | None:
         """The patch whose elements hold the most unshot power (its magnitude: overshooting
         leaves some negative), from the per-element ``power`` (T, 3); None when all is shot."""

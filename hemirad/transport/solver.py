@@ -12,7 +12,7 @@ from typing import Callable, Protocol
 
 import torch
 
-from hemirad.core.fastops import row_sums
+from hemirad.core.fastops import flatnonzero, row_sums
 from hemirad.core.runtime import deterministic, keep_freed_memory, torch_threads
 from hemirad.core.timing import Profiler
 from hemirad.geometry.mesh import Mesh
@@ -26,6 +26,7 @@ from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
 from hemirad.transport.shooters import PatchShooters
 from hemirad.transport.smallreceivers import small_receiver_form_factors
+from hemirad.transport.sweep import SweepTransport
 from hemirad.transport.view import HemicubeView
 
 # The phases a solve's time is reported in (``ProgressiveSolver.timings``, stats.json).
@@ -137,6 +138,11 @@ class ProgressiveSolver:
             receive later, rho_s times the ambient term (Feda & Purgathofer 1992), and keeps
             it as negative unshot radiosity; power stays conserved exactly and the solve
             converges in fewer shots.
+        sweeps: with patches, while no refiner runs the shots, every patch holding unshot
+            power shoots it at once (a Jacobi sweep: two sparse products over the kept
+            light, ``sweep.SweepTransport``) instead of the strongest alone; each patch
+            that shoots counts as a shot. Overshooting is then moot. Should the kept light
+            outgrow ``cache_bytes``, the solve goes on shooting one patch at a time.
         near_reach: the receivers within this many shooter radii of a shooter's centroid
             get its light as its initial elements send it (``nearfield``); 0: none. Without
             patches, as each element sends it (the paper's configuration has none).
@@ -164,7 +170,7 @@ class ProgressiveSolver:
                  patches: PatchShooters | None = None, overshoot: bool = False, near_reach: float = 0.0,
                  near_totals: str = "hemicube",
                  refine_shots: int | None = None, device: torch.device | str = "cpu",
-                 small_receivers: str = "pixels"):
+                 small_receivers: str = "pixels", sweeps: bool = False):
         self.device = torch.device(device)
         mesh = mesh.to(self.device)
         reflectance, emission = reflectance.to(self.device), emission.to(self.device)
@@ -183,6 +189,9 @@ class ProgressiveSolver:
         self.rows = FormFactorRows(cache_bytes)
         self.patches = patches
         self.overshoot = overshoot and patches is not None
+        self.sweeps = sweeps and patches is not None
+        self.sweep_count = 0  # sweeps made (``sweeps``)
+        self._transport: SweepTransport | None = None  # the kept light of the nodes that shot
         if near_totals not in NEAR_TOTALS:
             raise ValueError(f"near_totals must be one of {', '.join(NEAR_TOTALS)}, not {near_totals!r}")
         self.near_reach, self.near_totals = near_reach, near_totals
@@ -261,18 +270,20 @@ class ProgressiveSolver:
         self.rows.clear()
         self._near.clear()
         self._views.clear()
+        self._transport = None
         if self.patches is not None:
             self.patches.inherit(parent)
 
-    def shoot(self) -> int | None:
+    def shoot(self, limit: int | None = None) -> int | None:
         """One shot from the element (or with patches, the patch) with the largest unshot
-        power; None when nothing is left. Returns the element, or the patch.
+        power, or with ``sweeps`` a sweep of at most ``limit`` patches' shots; None when
+        nothing is left. Returns the element, or the (strongest) patch.
 
         With a refiner, the refiner runs the shot (it may split receivers and redo it
         before anything is committed); the view it returns is committed.
         """
         if self.patches is not None:
-            return self._shoot_patch()
+            return self._sweep(limit) if self.sweeps and self.active_refiner is None else self._shoot_patch()
         state = self.state
         power = state.unshot * self.areas[:, None]  # (T, 3)
         shooter = int(torch.argmax(row_sums(power)))
@@ -328,6 +339,51 @@ class ProgressiveSolver:
         self._views.clear()
         state.shots += 1
         return patch
+
+    def _sweep(self, limit: int | None = None) -> int | None:
+        """Every patch holding unshot power shoots it, all at once (``sweeps``); with ``limit``,
+        only that many, the strongest. Returns the strongest, None when nothing is left."""
+        patches, state, tree = self.patches, self.state, self.patches.tree
+        with self.profiler.phase("update"):
+            power = state.unshot * self.areas[:, None]  # (T, 3)
+            magnitude = torch.zeros(tree.num_patches, dtype=power.dtype, device=self.device).index_add_(
+                0, patches.patch, row_sums(power.abs()))
+            shooting = flatnonzero(magnitude > 0)
+            if len(shooting) == 0:
+                return None
+            held = None  # (T,) bool the elements of patches that do not shoot this time
+            if limit is not None and len(shooting) > limit:
+                strongest = torch.argsort(magnitude.index_select(0, shooting), descending=True, stable=True)
+                shooting = torch.sort(shooting.index_select(0, strongest[:limit])).values
+                held = torch.ones(tree.num_patches, dtype=torch.bool, device=self.device).index_fill_(
+                    0, shooting, False).index_select(0, patches.patch)
+                power = power.masked_fill(held[:, None], 0.0)
+        if self._transport is None:
+            self._transport = SweepTransport(self.mesh.num_elements, tree.num_nodes, len(tree.leaf), self.device)
+        transport = self._transport
+        for patch in shooting.tolist():
+            for node in patches.cut(patch, self.render_and_keep,
+                                    lambda node: self.mesh.corners_of(patches.members(node)).reshape(-1, 3)):
+                if node not in transport:
+                    F = self.form_factors_of(node)
+                    with self.profiler.phase("update"):
+                        transport.add(node, patches.bounds(node), F, self.near_receivers_of(node, F))
+        self._views.clear()
+        if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
+            self.sweeps, self._transport = False, None
+            return self._shoot_patch()
+        with self.profiler.phase("update"):
+            leaf_power = torch.zeros(len(tree.leaf), 3, dtype=power.dtype, device=self.device).index_add_(
+                0, patches.leaf, power)
+            patches.record_sweep(transport.node_of_leaf, leaf_power)
+            if held is None:
+                state.unshot.zero_()
+            else:
+                state.unshot.masked_fill_(~held[:, None], 0.0)
+            self._receive_incident(transport.incident(leaf_power), leaf_power.sum(0))
+        state.shots += len(shooting)
+        self.sweep_count += 1
+        return int(torch.argmax(magnitude))
 
     def _shot_form_factors(self, shooter: int, shot_power: torch.Tensor) -> torch.Tensor:
         """(T,) F_sj of a shot of ``shot_power`` (3,) from ``shooter``: its kept or rendered row,
@@ -439,7 +495,7 @@ class ProgressiveSolver:
         keep_freed_memory()
         with torch_threads(1 if GLContext.is_software() else torch.get_num_threads()), deterministic(self.device):
             while self.state.shots < max_shots and self.unshot_fraction > unshot_fraction:
-                shooter = self.shoot()
+                shooter = self.shoot(limit=max_shots - self.state.shots)
                 if shooter is None:
                     break
                 if progress is not None:
@@ -465,7 +521,7 @@ class ProgressiveSolver:
                  "unshot": s.unshot, "absorbed": s.absorbed, "escaped": s.escaped,
                  "emitted_power": self.emitted_power}
         return {"mesh": self.mesh.state_dict(), **{k: v.cpu().clone() for k, v in saved.items()}, "shots": s.shots,
-                "refiner": self.refiner.state_dict() if self.refiner is not None else None,
+                "sweeps": self.sweep_count, "refiner": self.refiner.state_dict() if self.refiner is not None else None,
                 "patches": self.patches.state_dict() if self.patches is not None else None,
                 "timings": self.timings()}
 
@@ -496,6 +552,7 @@ class ProgressiveSolver:
                     SolverState(per_element["radiosity"], per_element["unshot"], int(state["shots"]),
                                 state["absorbed"], state["escaped"]))
         self.emitted_power = state["emitted_power"].to(torch.float64).to(self.device)
+        self.sweep_count = int(state.get("sweeps", 0))
         if (state.get("patches") is None) != (self.patches is None):
             raise ValueError("the state was saved with patches " + ("off" if state.get("patches") is None else "on"))
         if self.refiner is not None:
@@ -504,6 +561,7 @@ class ProgressiveSolver:
             self.patches.load_state_dict(state["patches"], T)
         self._near.clear()
         self._views.clear()
+        self._transport = None
         self.renderer.set_geometry(mesh)
         self.rows.clear()
         self.profiler.load_state_dict(timings)

@@ -1,0 +1,125 @@
+"""The light of every shooting node at once: its kept row and near field as two sparse
+matrices, so that a sweep in which every patch shoots its unshot power (Jacobi) costs two
+sparse products instead of a Python loop of shots (docs/DESIGN.md §1.4).
+
+A node's shot is linear in the unshot power of its initial elements (its leaves, whose
+power spreads its light to its near receivers, ``nearfield``): receiver j gets
+
+    F_sj (sum_l far_scale_l P_l)               from G's row, where j is not near s,
+    sum_l W_lj P_l                             where it is,
+
+for leaf powers P_l (3,). Over all nodes that is  far @ Q + near @ P  with ``far`` (T, N) the
+rows with their near receivers removed, Q (N, 3) each node's far-scaled power, ``near``
+(T, T0) the near weights by leaf position and P (T0, 3). Both matrices are kept sorted by
+(receiver, column), whatever order the nodes were added in, so a sum over them is the same
+bit for bit in a run resumed from a checkpoint.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import torch
+
+from hemirad.core.fastops import flatnonzero
+from hemirad.transport.nearfield import NearReceivers
+
+# Bytes an entry of the matrices costs: an int64 column index and a float64 value.
+ENTRY_BYTES = 16
+
+
+@dataclass(frozen=True)
+class _NodeLight:
+    lo: int  # the node's leaf positions [lo, hi)
+    far_index: torch.Tensor  # (m,) receivers of G's row, near ones removed
+    far_values: torch.Tensor  # (m,)
+    near_rows: torch.Tensor  # (n,)
+    near_weights: torch.Tensor  # (k, n)
+
+
+def _csr(rows: torch.Tensor, columns: torch.Tensor, values: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """A (R, C) CSR matrix of the entries (rows, columns, values) (each (E,)), given in
+    increasing column order per row (a stable sort by row keeps it)."""
+    order = torch.sort(rows.to(torch.int32), stable=True).indices
+    crow = torch.zeros(shape[0] + 1, dtype=torch.int64, device=values.device)
+    crow[1:] = torch.cumsum(torch.bincount(rows, minlength=shape[0]), 0)
+    with warnings.catch_warnings():  # torch's note that its sparse CSR support is in beta
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(crow, columns.index_select(0, order), values.index_select(0, order), shape,
+                                       check_invariants=False)
+
+
+class SweepTransport:
+    """The light of the nodes that shot, for shooting them all at once.
+
+    Args:
+        num_elements: T, the receivers (the current mesh).
+        num_nodes: N, the patch tree's nodes.
+        num_leaves: T0, the initial elements (leaf positions).
+    Attributes:
+        node_of_leaf: (T0,) the node each leaf shoots with (-1: its patch has not shot yet).
+        far_scale: (T0,) per leaf, the scale of its node's row (``NearReceivers.far_scale``).
+        nbytes: what the matrices hold.
+    """
+
+    def __init__(self, num_elements: int, num_nodes: int, num_leaves: int, device: torch.device):
+        self.shape = (num_elements, num_nodes, num_leaves)
+        self.device = device
+        self.node_of_leaf = torch.full((num_leaves,), -1, dtype=torch.int64, device=device)
+        self.far_scale = torch.ones(num_leaves, dtype=torch.float64, device=device)
+        self._light: dict[int, _NodeLight] = {}
+        self._matrices: tuple[torch.Tensor, torch.Tensor | None] | None = None
+        self.nbytes = 0
+
+    def __contains__(self, node: int) -> bool:
+        return node in self._light
+
+    def add(self, node: int, bounds: tuple[int, int], form_factors: torch.Tensor, near: NearReceivers | None) -> None:
+        """Add ``node``, shooting for the leaves ``bounds`` [lo, hi), with its row ``form_factors``
+        (T,) and its near receivers (None: none)."""
+        lo, hi = bounds
+        far = form_factors != 0
+        rows = torch.empty(0, dtype=torch.int64, device=self.device)
+        weights = form_factors.new_zeros(hi - lo, 0)
+        if near is not None and len(near.rows):
+            far.index_fill_(0, near.rows, False)
+            rows, weights = near.rows, near.weights
+            self.far_scale[lo:hi] = near.far_scale
+        far_index = flatnonzero(far)
+        self._light[node] = _NodeLight(lo, far_index, form_factors.index_select(0, far_index), rows, weights)
+        self.node_of_leaf[lo:hi] = node
+        self.nbytes += ENTRY_BYTES * (len(far_index) + weights.numel())
+        self._matrices = None
+
+    def _build(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        T, N, T0 = self.shape
+        nodes = sorted(self._light)
+        lights = [self._light[n] for n in nodes]
+        far_rows = torch.cat([light.far_index for light in lights])
+        far_columns = torch.cat([torch.full_like(light.far_index, node) for node, light in zip(nodes, lights)])
+        far = _csr(far_rows, far_columns, torch.cat([light.far_values for light in lights]), (T, N))
+        # a node's number does not order its leaves: sort by them, for increasing columns per receiver
+        lights = sorted((light for light in lights if light.near_rows.numel()), key=lambda light: light.lo)
+        if not lights:
+            return far, None
+        near_rows = torch.cat([light.near_rows.repeat(len(light.near_weights)) for light in lights])
+        near_columns = torch.cat([
+            (light.lo + torch.arange(len(light.near_weights), device=self.device)).repeat_interleave(len(light.near_rows))
+            for light in lights])
+        near_values = torch.cat([light.near_weights.reshape(-1) for light in lights])
+        return far, _csr(near_rows, near_columns, near_values, (T, T0))
+
+    def incident(self, leaf_power: torch.Tensor) -> torch.Tensor:
+        """(T, 3) the power reaching every receiver's front when every leaf shoots its (T0, 3)
+        ``leaf_power`` from its node; every leaf with power must have a node."""
+        if self._matrices is None:
+            self._matrices = self._build()
+        far, near = self._matrices
+        node = self.node_of_leaf
+        if bool((node < 0).any()):
+            assert not bool(leaf_power[node < 0].any()), "a leaf with unshot power has no node"
+            node = node.clamp(min=0)
+        node_power = torch.zeros(self.shape[1], 3, dtype=leaf_power.dtype, device=self.device).index_add_(
+            0, node, self.far_scale[:, None] * leaf_power)
+        incident = far @ node_power
+        return incident if near is None else incident + near @ leaf_power
