@@ -65,6 +65,31 @@ def test_power_balances_with_overshooting_and_split_shooters(totals):
     assert len(solver._near) > 0 and all(bool((n.weights >= 0).all()) for n in solver._near.values())
 
 
+@pytest.mark.parametrize("totals", ["hemicube", "area"])
+def test_power_balances_in_sweeps_and_they_converge_to_what_single_shots_do(totals):
+    # The same open box: sweeps (every patch at once, from the kept light) conserve power to
+    # 1e-9, also when the shot limit cuts a sweep short, and converge to the answer of
+    # shooting one patch at a time.
+    mesh = open_box(element_size=0.25)
+    rho, E = random_materials(mesh.num_elements, seed=1, span=0.7, low=0.2, glowing=8)
+    emitted = (E * mesh.areas[:, None]).sum(0)
+    split_test = either(hidden_centroid_test(), point_source_test(0.5))
+    answers = []
+    for sweeps, shots in ((True, 100), (True, 100000), (False, 100000)):
+        solver = patch_solver(mesh, rho, E, 0.5, split_test=split_test, near_totals=totals, sweeps=sweeps)
+        try:
+            state = solver.run(max_shots=shots, unshot_fraction=1e-9 if shots > 100 else 0.0)
+        finally:
+            solver.close()
+        assert solver.patches.shooter_splits > 0
+        assert_power_balances(state, mesh.areas, rho, E, emitted, rtol=1e-9)
+        if shots == 100:
+            assert state.shots == 100 and solver.sweep_count > 2 and bool((state.unshot > 0).any())
+        else:
+            answers.append(state.radiosity)
+    torch.testing.assert_close(answers[0], answers[1], rtol=1e-7, atol=0)
+
+
 def test_power_balances_when_elements_shoot_with_a_near_field():
     mesh = open_box(element_size=0.25)
     rho, E = random_materials(mesh.num_elements, seed=2, span=0.7, low=0.2, glowing=8)
