@@ -28,7 +28,7 @@ import torch
 from hemirad import checkpoint as checkpoints
 from hemirad.adaptive.answer import RoundReport, estimated_relative_error, refine_by_answer
 from hemirad.adaptive.refine import Refiner
-from hemirad.assembly import make_solver
+from hemirad.assembly import make_solver, refined_patches
 from hemirad.core.atomic import remove_stale_temporaries
 from hemirad.core.device import select_device
 from hemirad.core.errors import HemiradInputError, SceneError, bounded_repr
@@ -267,13 +267,15 @@ class Result:
         return Path(path)
 
 
-def _restore(solver: ProgressiveSolver, state: dict, run: dict, path, initial_elements: int) -> dict:
+def _restore(scene: Scene, solver: ProgressiveSolver, state: dict, run: dict, path, initial_elements: int) -> dict:
     """Load a checkpoint's solver state; returns the seconds the earlier runs spent."""
     try:
         if int(run["initial_elements"]) != initial_elements:
             raise ValueError(f"the scene meshes to {initial_elements} elements, the checkpoint's run "
                              f"started with {run['initial_elements']}")
-        solver.load_state_dict(state)
+        # after a round's split the patches were built on the refined mesh (``refine_by_answer``)
+        split = scene.refine.by_answer and any(int(r["split"]) for r in run.get("answer", {}).get("rounds", []))
+        solver.load_state_dict(state, (lambda: refined_patches(scene, solver)) if split else None)
         return {"mesh": float(run["seconds"]["mesh"]), "solve": float(run["seconds"]["solve"])}
     except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as exc:
         raise HemiradInputError(f"cannot resume from {path}: its content does not fit this scene ({exc}). "
@@ -497,7 +499,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     try:
         check_before_solving(scene, mesh, solver)
         if saved is not None:
-            before = _restore(solver, *saved, checkpoint, mesh.num_elements)
+            before = _restore(scene, solver, *saved, checkpoint, mesh.num_elements)
             resumed_from = solver.state.shots
 
         def elapsed() -> dict[str, float]:
@@ -566,7 +568,8 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
         shot_done = saver.after_shot(progress)
     refine_by_answer(solver, refiner, refine.max_elements, refine.tolerance, refine.rounds,
                      lambda: solver.run(options.max_shots, options.unshot_fraction, shot_done),
-                     report=None if saver is None else (lambda _: saver.save()), reports=reports)
+                     report=None if saver is None else (lambda _: saver.save()), reports=reports,
+                     patches_for=lambda: refined_patches(scene, solver))
     return reports, refiner
 
 

@@ -198,11 +198,31 @@ class ProgressiveSolver:
         self._near: dict[int, NearReceivers] = {}
         self._views: dict[int, HemicubeView] = {}  # rendered for shooters whose near field is not made yet
         self._leaf_corners = None
-        if patches is not None:  # the initial elements' corners by leaf position: the near field's sources
-            self._leaf_corners = mesh.corners.index_select(0, torch.argsort(patches.tree.leaf.to(self.device)))
+        if patches is not None:
+            self.use_patches(patches)
 
     def close(self) -> None:
         self.renderer.close()
+
+    def use_patches(self, patches: PatchShooters) -> None:
+        """Shoot with ``patches``, built on the current mesh (whose elements are its leaves)."""
+        self.patches = patches
+        # the leaves' corners by leaf position: the near field's sources
+        self._leaf_corners = self.mesh.corners.index_select(0, torch.argsort(patches.tree.leaf.to(self.device)))
+        self.rows.clear()
+        self._near.clear()
+        self._views.clear()
+        self._transport = None
+
+    def restart(self, patches: PatchShooters) -> None:
+        """Solve the current mesh afresh with ``patches`` built on it: every radiosity back to
+        the emission, all of it unshot; the shots and sweeps made so far stay counted."""
+        self.use_patches(patches)
+        state = self.state
+        state.radiosity.copy_(self.emission)
+        state.unshot.copy_(self.emission)
+        state.absorbed.zero_()
+        state.escaped.zero_()
 
     @property
     def unshot_fraction(self) -> float:
@@ -525,8 +545,10 @@ class ProgressiveSolver:
                 "patches": self.patches.state_dict() if self.patches is not None else None,
                 "timings": self.timings()}
 
-    def load_state_dict(self, state: dict) -> None:
+    def load_state_dict(self, state: dict, patches_for: Callable[[], PatchShooters] | None = None) -> None:
         """Continue from ``state_dict()``'s output: the next shot is the one that would have followed.
+        ``patches_for()``: the patches of the saved mesh, where they were built on it
+        (``restart``), made once the mesh is loaded; None: those the solver was made with.
 
         The solver must have been made for the same scene (resolution, refiner options, and
         the initial mesh, whose bounds set the hemicube's near and far planes). Raises
@@ -557,6 +579,8 @@ class ProgressiveSolver:
             raise ValueError("the state was saved with patches " + ("off" if state.get("patches") is None else "on"))
         if self.refiner is not None:
             self.refiner.load_state_dict(state["refiner"])
+        if patches_for is not None:
+            self.use_patches(patches_for())
         if self.patches is not None:
             self.patches.load_state_dict(state["patches"], T)
         self._near.clear()
