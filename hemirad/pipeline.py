@@ -535,13 +535,14 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     return result
 
 def _check_answer_refinement(scene: Scene) -> None:
-    """Refinement judged on the answer needs patches (it regathers what each node sent)."""
+    """Refinement judged on the answer shoots by patches (each refined mesh is solved afresh by
+    patches built on it)."""
     if not scene.refine.by_answer:
         return
     if scene.solver.patch_size in (None, "none"):
         raise _key_error(scene, "refine.criterion", "a per-shot criterion when every element shoots "
-                         "(solver.patch_size none)", ANSWER, "Refinement judged on the answer regathers what "
-                         "each patch has sent; use solver.patch_size auto, or another criterion.")
+                         "(solver.patch_size none)", ANSWER, "Refinement judged on the answer solves each "
+                         "refined mesh by patches built on it; use solver.patch_size auto, or another criterion.")
 
 
 def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: "_CheckpointWriter | None",

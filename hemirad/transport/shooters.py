@@ -103,11 +103,16 @@ class PatchShooters:
         self.sent.index_add_(0, node_of_leaf.clamp(min=0), leaf_power)
         self.sent_by_leaf += leaf_power
 
-    def strongest(self, power: torch.Tensor) -> int | None:
-        """The patch whose elements hold the most unshot power (its magnitude: overshooting
-        leaves some negative), from the per-element ``power`` (T, 3); None when all is shot."""
+    def magnitudes(self, power: torch.Tensor) -> torch.Tensor:
+        """(P,) per patch, the magnitude of its elements' unshot ``power`` (T, 3) (overshooting
+        leaves some negative)."""
         magnitude = torch.zeros(self.tree.num_patches, dtype=power.dtype, device=power.device)
-        magnitude.index_add_(0, self.patch, row_sums(power.abs()))
+        return magnitude.index_add_(0, self.patch, row_sums(power.abs()))
+
+    def strongest(self, power: torch.Tensor) -> int | None:
+        """The patch whose elements hold the most unshot power (``magnitudes``), from the
+        per-element ``power`` (T, 3); None when all is shot."""
+        magnitude = self.magnitudes(power)
         best = int(torch.argmax(magnitude))
         return best if float(magnitude[best]) > 0.0 else None
 

@@ -209,6 +209,11 @@ class ProgressiveSolver:
         self.patches = patches
         # the leaves' corners by leaf position: the near field's sources
         self._leaf_corners = self.mesh.corners.index_select(0, torch.argsort(patches.tree.leaf.to(self.device)))
+        self._forget_kept_light()
+
+    def _forget_kept_light(self) -> None:
+        """Drop what was kept for the shooters of the current mesh and patches (rows, near
+        fields, views, the sweeps' matrices): they changed."""
         self.rows.clear()
         self._near.clear()
         self._views.clear()
@@ -287,10 +292,7 @@ class ProgressiveSolver:
             rows.inherit(parent) for rows in self._per_element)
         self.areas = mesh.areas
         self.renderer.set_geometry(mesh)
-        self.rows.clear()
-        self._near.clear()
-        self._views.clear()
-        self._transport = None
+        self._forget_kept_light()
         if self.patches is not None:
             self.patches.inherit(parent)
 
@@ -314,11 +316,11 @@ class ProgressiveSolver:
         with self.profiler.phase("update"):
             near = self.near_receivers_of(shooter, F)
             if near is None:
-                self._commit(shooter, shot_power, F)
+                self._receive(shot_power, F)
             else:
                 self._receive_incident(incident_power(F, shot_power, near, shot_power[None]), shot_power)
-                self.state.unshot[shooter] = 0.0
-                self.state.shots += 1
+            self.state.unshot[shooter] = 0.0  # spent
+            self.state.shots += 1
         return shooter
 
     def _shoot_patch(self) -> int | None:
@@ -333,8 +335,7 @@ class ProgressiveSolver:
             patch = patches.strongest(state.unshot * self.areas[:, None])
         if patch is None:
             return None
-        nodes = patches.cut(patch, self.render_and_keep,
-                            lambda node: self.mesh.corners_of(patches.members(node)).reshape(-1, 3))
+        nodes = patches.cut(patch, self.render_and_keep, self._node_corners)
         for node in nodes:
             with self.profiler.phase("update"):
                 members = patches.members(node)
@@ -344,7 +345,7 @@ class ProgressiveSolver:
                 member_power = shot * self.areas.index_select(0, members)[:, None]
                 shot_power = member_power.sum(0)
                 leaf_power = None
-                if self._spreads(node):  # by the node's initial elements (the near field's sources)
+                if self.near_reach > 0:  # by the node's initial elements (the near field's sources)
                     lo, hi = patches.bounds(node)
                     leaf_power = torch.zeros(hi - lo, 3, dtype=shot.dtype, device=self.device).index_add_(
                         0, patches.leaf.index_select(0, members) - lo, member_power)
@@ -360,14 +361,17 @@ class ProgressiveSolver:
         state.shots += 1
         return patch
 
+    def _node_corners(self, node: int) -> torch.Tensor:
+        """(3K, 3) the corners of ``node``'s elements, for the shooter tests (``PatchShooters.cut``)."""
+        return self.mesh.corners_of(self.patches.members(node)).reshape(-1, 3)
+
     def _sweep(self, limit: int | None = None) -> int | None:
         """Every patch holding unshot power shoots it, all at once (``sweeps``); with ``limit``,
         only that many, the strongest. Returns the strongest, None when nothing is left."""
         patches, state, tree = self.patches, self.state, self.patches.tree
         with self.profiler.phase("update"):
             power = state.unshot * self.areas[:, None]  # (T, 3)
-            magnitude = torch.zeros(tree.num_patches, dtype=power.dtype, device=self.device).index_add_(
-                0, patches.patch, row_sums(power.abs()))
+            magnitude = patches.magnitudes(power)
             shooting = flatnonzero(magnitude > 0)
             if len(shooting) == 0:
                 return None
@@ -382,13 +386,14 @@ class ProgressiveSolver:
             self._transport = SweepTransport(self.mesh.num_elements, tree.num_nodes, len(tree.leaf), self.device)
         transport = self._transport
         for patch in shooting.tolist():
-            for node in patches.cut(patch, self.render_and_keep,
-                                    lambda node: self.mesh.corners_of(patches.members(node)).reshape(-1, 3)):
+            for node in patches.cut(patch, self.render_and_keep, self._node_corners):
                 if node not in transport:
                     F = self.form_factors_of(node)
                     with self.profiler.phase("update"):
                         transport.add(node, patches.bounds(node), F, self.near_receivers_of(node, F))
-        self._views.clear()
+                        self._near.pop(node, None)  # the transport holds it now
+            # the views of nodes that split into their children: each holds a hemicube's pixels
+            self._views.clear()
         if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
             self.sweeps, self._transport = False, None
             return self._shoot_patch()
@@ -447,26 +452,14 @@ class ProgressiveSolver:
         if self.near_reach > 0 and shooter not in self._near:
             self._views[shooter] = view
 
-    def _commit(self, shooter: int, shot_power: torch.Tensor, F: torch.Tensor) -> None:
-        """Hand every receiver what the shot of ``shot_power`` (3,) with form factors F (T,)
-        from element ``shooter`` gives it; the shooter's unshot radiosity is then spent."""
-        self._receive(shot_power, F)
-        self.state.unshot[shooter] = 0.0
-        self.state.shots += 1
-
-    def _spreads(self, node: int) -> bool:
-        """Whether ``node``'s (with patches; else the element's) light to its near receivers
-        is sent as its initial elements send it: there is a near field."""
-        return self.near_reach > 0
-
     def near_receivers_of(self, shooter: int, F: torch.Tensor, among: torch.Tensor | None = None,
                           view: HemicubeView | None = None) -> NearReceivers | None:
         """The receivers near ``shooter`` (a node; without patches, an element) that get its
         light as its initial elements send it (``nearfield``), kept while the mesh is
-        unchanged; None where it ``_spreads`` nothing. ``view``: what the hemicube that gave
+        unchanged; None without a near field (``near_reach`` 0). ``view``: what the hemicube that gave
         the row F (T,) saw (default: the one rendered for this shot, else a new render).
         With ``among`` (R,), only those among these elements, unscaled, and not kept."""
-        if not self._spreads(shooter):
+        if self.near_reach <= 0:
             return None
         if among is None and shooter in self._near:
             return self._near[shooter]
@@ -583,9 +576,6 @@ class ProgressiveSolver:
             self.use_patches(patches_for())
         if self.patches is not None:
             self.patches.load_state_dict(state["patches"], T)
-        self._near.clear()
-        self._views.clear()
-        self._transport = None
+        self._forget_kept_light()
         self.renderer.set_geometry(mesh)
-        self.rows.clear()
         self.profiler.load_state_dict(timings)
