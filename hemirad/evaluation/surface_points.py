@@ -17,6 +17,7 @@ def elements_at(mesh: Mesh, points: torch.Tensor, normals: torch.Tensor, toleran
     with ``normals`` (N, 3); -1 where no element contains the point. ``tolerance`` is a
     distance relative to the mesh's bounding box diagonal."""
     corners = mesh.corners.to(points.dtype)  # (T, 3, 3)
+    element_normals = mesh.normals.to(points.dtype)  # (T, 3)
     extent = float((mesh.vertices.amax(0) - mesh.vertices.amin(0)).norm())
     eps = tolerance * extent
     out = torch.full((len(points),), -1, dtype=torch.int64)
@@ -25,9 +26,9 @@ def elements_at(mesh: Mesh, points: torch.Tensor, normals: torch.Tensor, toleran
     d11, d12, d22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
     det = d11 * d22 - d12 * d12
     for i, (p, n) in enumerate(zip(points, normals)):
-        facing = (mesh.normals.to(points.dtype) @ n) > 0.9
+        facing = (element_normals @ n) > 0.9
         offset = p - a
-        on_plane = (offset * mesh.normals.to(points.dtype)).sum(1).abs() < eps
+        on_plane = (offset * element_normals).sum(1).abs() < eps
         q1, q2 = (offset * e1).sum(1), (offset * e2).sum(1)
         u = (d22 * q1 - d12 * q2) / det
         v = (d11 * q2 - d12 * q1) / det

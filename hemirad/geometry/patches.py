@@ -3,8 +3,9 @@ may shoot from instead (docs/DESIGN.md §1.4).
 
 A patch is the set of a planar surface's elements whose centroids fall into one square cell
 of side ``patch_size`` laid over that plane; on a curved surface, a cap of the elements in
-one cube of side ``patch_size`` whose normals lie within ``CURVED_PATCH_CONE`` of each other. Each patch is split recursively into quadrants (of its own bounding square in the
-plane) down to single elements: the nodes of that tree are the shooters a patch may use
+one cube of side ``patch_size`` whose normals lie within ``CURVED_PATCH_CONE`` of each other.
+Each patch is split recursively into quadrants (of its own bounding square in the plane)
+down to single elements: the nodes of that tree are the shooters a patch may use
 where its centroid is a poor stand-in for its extent (``transport.shooters``).
 
 Nodes are numbered depth-first, and every node's elements are one contiguous range of
@@ -119,7 +120,7 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
         u, v = plane_axes(normal)
         size = float(np.median(patch_size[members]))
         if size <= 0:  # patches turned off
-            out += [(members[i:i + 1], u, v) for i in range(len(members))]
+            out += _each_alone(members, normals)
             continue
         xy = centroids[members] @ np.stack([u, v]).T  # (k, 2)
         # The grid starts at the lowest centroid, not at the plane's corner: aligned with the

@@ -31,7 +31,6 @@ from hemirad.transport.renderer import HemicubeRenderer, clip_planes
 SENSOR_RESOLUTION = 256
 
 
-
 @dataclass(frozen=True)
 class Gather:
     """What the hemicubes of N sensors saw.

@@ -18,8 +18,8 @@ from hemirad.geometry.mesh import Mesh
 from hemirad.lighting.grids import GridLayout, grid_layout, grid_statistics
 from hemirad.lighting.photometry import illuminance
 from hemirad.lighting.sensors import SENSOR_RESOLUTION, final_gather, sensor_renderer, unit_normals
-from hemirad.transport.hemicube import OFF_AXIS_TANGENT
 from hemirad.scene.model import Grid, Scene
+from hemirad.transport.hemicube import OFF_AXIS_TANGENT
 
 #: The columns of ``sensors.csv`` (E: the luminance of E_r, E_g, E_b in the scene's unit).
 SENSOR_COLUMNS = ("name", "x", "y", "z", "nx", "ny", "nz", "E_r", "E_g", "E_b", "E", "lux")

@@ -391,12 +391,11 @@ class ProgressiveSolver:
                     F = self.form_factors_of(node)
                     with self.profiler.phase("update"):
                         transport.add(node, patches.bounds(node), F, self.near_receivers_of(node, F))
-                        self._near.pop(node, None)  # the transport holds it now
             # the views of nodes that split into their children: each holds a hemicube's pixels
             self._views.clear()
-        if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
-            self.sweeps, self._transport = False, None
-            return self._shoot_patch()
+            if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
+                self.sweeps, self._transport = False, None
+                return self._shoot_patch()
         with self.profiler.phase("update"):
             leaf_power = torch.zeros(len(tree.leaf), 3, dtype=power.dtype, device=self.device).index_add_(
                 0, patches.leaf, power)
