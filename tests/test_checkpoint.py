@@ -73,9 +73,11 @@ def test_killed_and_resumed_run_equals_an_uninterrupted_one(refine, uninterrupte
 
 
 def test_a_run_of_sweeps_killed_and_resumed_equals_an_uninterrupted_one(tmp_path):
-    full = hemirad.solve(scene(shots=100000, sweeps=True, unshot_fraction=1e-3))
+    def sweeping():
+        return scene(shots=100000, sweeps=True, unshot_fraction=1e-3)
+
     reports = []
-    hemirad.solve(scene(shots=100000, sweeps=True, unshot_fraction=1e-3), progress=reports.append)
+    full = hemirad.solve(sweeping(), progress=reports.append)
     assert len(reports) > 6 and full.stats["sweeps"] == len(reports)
     assert reports[2].shots - reports[1].shots > 10  # a sweep is many patches' shots
     path = tmp_path / checkpoints.FILENAME
@@ -83,11 +85,9 @@ def test_a_run_of_sweeps_killed_and_resumed_equals_an_uninterrupted_one(tmp_path
     # the 6th: the resumed run redoes the 6th
     every = reports[4].shots
     with pytest.raises(KeyboardInterrupt):
-        hemirad.solve(scene(shots=100000, sweeps=True, unshot_fraction=1e-3), progress=stop_after(reports[5].shots),
-                      checkpoint=path, checkpoint_every=every)
+        hemirad.solve(sweeping(), progress=stop_after(reports[5].shots), checkpoint=path, checkpoint_every=every)
     assert checkpoints.saved_shots(path) == reports[4].shots
-    resumed = hemirad.solve(scene(shots=100000, sweeps=True, unshot_fraction=1e-3), checkpoint=path,
-                            checkpoint_every=every, resume=True)
+    resumed = hemirad.solve(sweeping(), checkpoint=path, checkpoint_every=every, resume=True)
     assert resumed.stats["resumed_from_shot"] == reports[4].shots
     assert_identical(resumed, full)
 
