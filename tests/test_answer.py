@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import hemirad
+from hemirad.core.fastops import flatnonzero
 from hemirad.adaptive.answer import element_errors, estimated_relative_error, refine_mesh, select_by_error
 from hemirad.adaptive.refine import Refiner
 from hemirad.cli import main
@@ -212,3 +213,30 @@ def test_a_checkpoint_without_its_rounds_is_refused(tmp_path):
     checkpoints.write(path, checkpoints.fingerprint(scene), state, run)
     with pytest.raises(hemirad.HemiradInputError, match="rounds"):
         hemirad.solve(scene, checkpoint=path, resume=True)
+
+
+def test_refinement_adds_elements_inside_patches_not_patches():
+    # patches shoot, elements receive: after a round's split every patch of the refined mesh
+    # holds the children of one initial patch's elements, and each initial patch is one
+    # refined patch; only the lamp's elements shoot alone
+    from hemirad.assembly import make_solver, refined_patches
+
+    scene = _small_cornell(0.05)
+    scene.refine.pattern, scene.refine.criterion = "pattern2", "answer"
+    solver = make_solver(scene)
+    try:
+        before = solver.patches.patch.clone()
+        emitting = (solver.emission > 0).any(dim=1)
+        chosen = torch.zeros(len(before), dtype=torch.bool).index_fill_(0, flatnonzero(~emitting)[::3], True)
+        chosen[flatnonzero(emitting)[:2]] = True
+        mesh, parent = Refiner(scene.refine, solver.emission).split(solver.mesh, chosen)
+        solver.adopt_split(mesh, parent)
+        assert mesh.num_elements > 1.5 * len(before)
+        after = refined_patches(scene, solver).patch
+        lamp = (solver.emission > 0).any(dim=1)
+        pairs = torch.unique(torch.stack([before[parent][~lamp], after[~lamp]]), dim=1)
+        assert len(torch.unique(pairs[0])) == len(torch.unique(pairs[1])) == pairs.shape[1]
+        assert len(torch.unique(after[lamp])) == int(lamp.sum()) > int(emitting.sum())
+        assert not bool(torch.isin(after[lamp], after[~lamp]).any())
+    finally:
+        solver.close()

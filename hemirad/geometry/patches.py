@@ -94,7 +94,29 @@ def build_patches(mesh: Mesh, patch_size: np.ndarray, owner: np.ndarray | None =
     groups, alone = _plane_cells(plane_ids, centroids, normals, areas, patch_size)
     owner = mesh.surface.cpu().numpy() if owner is None else np.asarray(owner)
     groups += _curved_cells(alone, owner, centroids, normals, areas, corners, patch_size)
-    builder = _TreeBuilder(centroids, normals, areas, corners, plane_ids)
+    return _grow_trees(mesh, groups)
+
+
+def group_patches(mesh: Mesh, group: np.ndarray) -> PatchTree:
+    """The patches of ``mesh`` given each element's ``group`` (T,) (integers; patches numbered
+    in increasing group), each split into its quadrant tree. For a refined mesh whose
+    elements carry the patch of the initial element they lie in
+    (``PatchShooters.inherit``): refinement makes elements inside patches, not new patches."""
+    normals = mesh.normals.cpu().numpy()
+    areas = mesh.areas.cpu().numpy()
+    _, key = np.unique(np.asarray(group), return_inverse=True)
+    order = np.argsort(key, kind="stable")
+    groups = []
+    for members in np.split(order, np.flatnonzero(np.diff(key[order])) + 1):
+        normal = (normals[members] * areas[members, None]).sum(0)
+        groups.append((members, *plane_axes(normal / np.linalg.norm(normal))))
+    return _grow_trees(mesh, groups)
+
+
+def _grow_trees(mesh: Mesh, groups: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> PatchTree:
+    """The tree of patches ``groups`` (members (k,), plane axes u, v), in order."""
+    builder = _TreeBuilder(mesh.centroids.cpu().numpy(), mesh.normals.cpu().numpy(), mesh.areas.cpu().numpy(),
+                           mesh.corners.cpu().numpy(), mesh.plane_ids.cpu().numpy())
     roots, patch = [], np.empty(mesh.num_elements, dtype=np.int64)
     for index, (members, u, v) in enumerate(groups):
         patch[members] = index
