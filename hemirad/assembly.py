@@ -56,7 +56,8 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
 def make_patches(scene: Scene, mesh: Mesh, device: torch.device) -> PatchShooters:
     """The patches of the initial ``mesh`` as ``scene.solver`` asks, with the shooter tests."""
     owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]  # (T,) each element's object
-    return PatchShooters(build_patches(mesh, patch_sizes(scene, mesh, owner), owner), device, shooter_test(scene))
+    return PatchShooters(build_patches(mesh, patch_sizes(scene, mesh, owner), owner), device, shooter_test(scene),
+                         source_corners=mesh.corners)
 
 
 def shooter_test(scene: Scene) -> ShooterTest:
@@ -66,11 +67,15 @@ def shooter_test(scene: Scene) -> ShooterTest:
     return test if scene.solver.shooter_split is None else either(test, point_source_test(scene.solver.shooter_split))
 
 
-def refined_patches(scene: Scene, solver: ProgressiveSolver, grouping: torch.Tensor | None = None) -> PatchShooters:
+def refined_patches(scene: Scene, solver: ProgressiveSolver, saved: dict | None = None) -> PatchShooters:
     """The patches of the solver's mesh after refinement judged on the answer split it: those
     of the initial mesh, each now holding its elements' children (``solver.patches.patch``,
-    carried through the split; ``grouping`` (T,): a saved run's), but every emitting element
-    shoots alone, as does every one whose object's patch size is none.
+    carried through the split; ``saved``: a saved run's ``PatchShooters.state_dict``), but
+    every emitting element shoots alone, as does every one whose object's patch size is none.
+    Near a node, its light leaves from the children of the initial elements its elements lie
+    in (``PatchShooters``' ``source`` and ``source_split``), not from its refined elements:
+    as sources those made office refined twice (12,703 elements) 25.6 million near weights
+    (433 MB, past the sweeps' memory; the children: 201 MB).
 
     Refinement adds receivers, not shooters: the patches built afresh on a refined mesh, of
     its elements' sizes, made office refined twice (12,751 elements) 2,577 patches and its
@@ -81,12 +86,14 @@ def refined_patches(scene: Scene, solver: ProgressiveSolver, grouping: torch.Ten
     resolve its penumbrae (office refined twice: 0.00025 -> 0.00013; floating, 10,628
     elements: 0.00031 -> 0.00023); on an unrefined mesh it changes nothing (floating 0.00328
     -> 0.00331, office 0.00155 -> 0.00156)."""
-    mesh = solver.mesh
-    group = (solver.patches.patch if grouping is None else grouping).cpu().numpy().copy()
+    mesh, patches = solver.mesh, solver.patches
+    group, source = (patches.patch, patches.source) if saved is None else (saved["patch"], saved["source"])
+    group = group.cpu().numpy().copy()
     owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]
     alone = (solver.emission > 0).any(dim=1).cpu().numpy() | (patch_sizes(scene, mesh, owner) <= 0)
     group[alone] = group.max() + 1 + np.flatnonzero(alone)
-    return PatchShooters(group_patches(mesh, group), solver.device, shooter_test(scene))
+    return PatchShooters(group_patches(mesh, group), solver.device, shooter_test(scene), source=source,
+                         source_corners=patches.source_corners, source_split=scene.refine.pattern)
 
 
 def patch_sizes(scene: Scene, mesh: Mesh, owner: np.ndarray) -> np.ndarray:

@@ -275,7 +275,7 @@ def _restore(scene: Scene, solver: ProgressiveSolver, state: dict, run: dict, pa
                              f"started with {run['initial_elements']}")
         # after a round's split the patches were regrouped on the refined mesh (``refine_by_answer``)
         split = scene.refine.by_answer and any(int(r["split"]) for r in run.get("answer", {}).get("rounds", []))
-        solver.load_state_dict(state, (lambda: refined_patches(scene, solver, state["patches"]["patch"])) if split else None)
+        solver.load_state_dict(state, (lambda: refined_patches(scene, solver, state["patches"])) if split else None)
         return {"mesh": float(run["seconds"]["mesh"]), "solve": float(run["seconds"]["solve"])}
     except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as exc:
         raise HemiradInputError(f"cannot resume from {path}: its content does not fit this scene ({exc}). "

@@ -216,7 +216,7 @@ def test_a_checkpoint_without_its_rounds_is_refused(tmp_path):
 
 
 def test_refinement_adds_elements_inside_patches_not_patches():
-    # patches shoot, elements receive: after a round's split every patch of the refined mesh
+    # patches shoot, elements receive: after two rounds' splits every patch of the refined mesh
     # holds the children of one initial patch's elements, and each initial patch is one
     # refined patch; only the lamp's elements shoot alone
     from hemirad.assembly import make_solver, refined_patches
@@ -229,14 +229,31 @@ def test_refinement_adds_elements_inside_patches_not_patches():
         emitting = (solver.emission > 0).any(dim=1)
         chosen = torch.zeros(len(before), dtype=torch.bool).index_fill_(0, flatnonzero(~emitting)[::3], True)
         chosen[flatnonzero(emitting)[:2]] = True
-        mesh, parent = Refiner(scene.refine, solver.emission).split(solver.mesh, chosen)
+        refiner = Refiner(scene.refine, solver.emission)
+        mesh, parent = refiner.split(solver.mesh, chosen)
         solver.adopt_split(mesh, parent)
-        assert mesh.num_elements > 1.5 * len(before)
-        after = refined_patches(scene, solver).patch
+        mesh, second = refiner.split(mesh, mesh.level > 0)  # and their children again
+        solver.adopt_split(mesh, second)
+        parent = parent[second]
+        assert mesh.num_elements > 2.5 * len(before)
+        patches = refined_patches(scene, solver)
+        after = patches.patch
         lamp = (solver.emission > 0).any(dim=1)
         pairs = torch.unique(torch.stack([before[parent][~lamp], after[~lamp]]), dim=1)
         assert len(torch.unique(pairs[0])) == len(torch.unique(pairs[1])) == pairs.shape[1]
         assert len(torch.unique(after[lamp])) == int(lamp.sum()) > int(emitting.sum())
         assert not bool(torch.isin(after[lamp], after[~lamp]).any())
+        # near a patch its light leaves from the initial elements' children that hold its
+        # elements: fewer triangles than its elements, covering exactly what they cover
+        solver.restart(patches)
+        coarser = 0
+        for node in patches.tree.root.tolist():
+            corners, local = patches.sources(node)
+            members = patches.members(node)
+            area = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).norm(dim=1) / 2
+            assert abs(float(area.sum() / mesh.areas[members].sum()) - 1) < 1e-12
+            assert len(torch.unique(local)) == len(corners) <= len(members)
+            coarser += len(corners) < len(members)
+        assert coarser > 0.3 * patches.tree.num_patches
     finally:
         solver.close()

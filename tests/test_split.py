@@ -5,7 +5,7 @@ import torch
 
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patterns import CHILDREN, PATTERNS
-from hemirad.geometry.split import angle_quality, largest_angles, split_triangles
+from hemirad.geometry.split import angle_quality, child_containing, largest_angles, split_triangles
 from hemirad.scene.meshing import grid_quad
 
 
@@ -287,3 +287,17 @@ def test_a_leaf_beside_twice_split_neighbours_is_unbalanced():
 def test_a_split_makes_the_children_its_pattern_names(pattern):
     mesh, _ = split_triangles(_triangle(), torch.tensor([True]), pattern)
     assert mesh.num_elements == CHILDREN[pattern]
+
+
+@pytest.mark.parametrize("pattern", PATTERNS)
+def test_the_child_containing_a_descendant_is_the_one_the_split_made(pattern):
+    # split a triangle, then every child again: each grandchild's centroid finds, in the
+    # triangle, the child it was split from (corners in the split's order and winding)
+    mesh = _triangle()
+    children, _ = split_triangles(mesh, torch.tensor([True]), pattern)
+    grandchildren, parent = split_triangles(children, torch.ones(children.num_elements, dtype=torch.bool), pattern)
+    found, number = child_containing(mesh.corners.expand(grandchildren.num_elements, 3, 3), grandchildren.centroids,
+                                     pattern)
+    torch.testing.assert_close(found, children.corners[parent], rtol=0, atol=1e-12)
+    # and the numbers tell the siblings apart, one for each child
+    assert len(torch.unique(torch.stack([parent, number]), dim=1).T) == CHILDREN[pattern]

@@ -147,9 +147,10 @@ def regather(solver: "ProgressiveSolver", parent: torch.Tensor, split: torch.Ten
         part = F.index_select(0, changed)[:, None] * patches.sent[node]  # (C, 3)
         near = solver.near_receivers_of(node, F, among=changed, view=view)
         if near is not None and len(near.rows):
-            # near the node, its light as its initial elements sent it (``nearfield``), unscaled
+            # near the node, its light as its sources sent it (``nearfield``), unscaled
             lo, hi = patches.bounds(node)
-            part[torch.searchsorted(changed, near.rows)] = near.weights.T @ patches.sent_by_leaf[lo:hi]
+            part[torch.searchsorted(changed, near.rows)] = near.weights.T @ patches.by_source(
+                node, patches.sent_by_leaf[lo:hi])
         gathered += part
     # each split element's children share exactly what it had received
     total = torch.zeros_like(received).index_add_(0, which, gathered)

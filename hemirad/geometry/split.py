@@ -20,7 +20,7 @@ import math
 
 import torch
 
-from hemirad.core.fastops import flatnonzero, rows_touching
+from hemirad.core.fastops import flatnonzero, row_sums, rows_touching
 from hemirad.geometry.edges import (MIDPOINT_INDEX, MidpointFinder, edge_keys, key_ends, lookup, merged_index,
                                     midpoint_index, midpoint_keys, midpoint_lookup, search, triangle_edges)
 from hemirad.geometry.mesh import Mesh
@@ -116,6 +116,32 @@ def split_triangles(mesh: Mesh, selected: torch.Tensor, pattern: str) -> tuple[M
     rounds = SplitRounds(mesh, pattern, room=len(chosen))
     rounds.split(chosen)
     return rounds.result()
+
+
+def child_containing(triangles: torch.Tensor, points: torch.Tensor, pattern: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """The child, as ``split_triangles`` makes it with ``pattern``, of each of the (n, 3, 3)
+    ``triangles`` that contains its point (n, 3) (inside the triangle: a descendant's centroid
+    finds the child it descends from): (n, 3, 3) its corners (in the split's order and
+    winding) and (n,) its number among its siblings."""
+    a, b, c = triangles.unbind(1)
+    e0, e1, p = b - a, c - a, points - a
+    d00, d01, d11 = row_sums(e0 * e0), row_sums(e0 * e1), row_sums(e1 * e1)
+    d20, d21 = row_sums(p * e0), row_sums(p * e1)
+    det = d00 * d11 - d01 * d01
+    v, w = (d11 * d20 - d01 * d21) / det, (d00 * d21 - d01 * d20) / det  # barycentrics of b, c
+    u = 1.0 - v - w
+    if pattern == "pattern1":  # (v0 v1 c), (v1 v2 c), (v2 v0 c): the one without the smallest coordinate's corner
+        g = triangles.mean(1)
+        children = torch.stack([torch.stack([a, b, g], 1), torch.stack([b, c, g], 1), torch.stack([c, a, g], 1)], 1)
+        which = torch.argmin(torch.stack([w, u, v], 1), dim=1)
+    elif pattern == "pattern2":  # (v0 m01 m20), (m01 v1 m12), (m20 m12 v2), (m01 m12 m20)
+        m01, m12, m20 = 0.5 * (a + b), 0.5 * (b + c), 0.5 * (c + a)
+        children = torch.stack([torch.stack([a, m01, m20], 1), torch.stack([m01, b, m12], 1),
+                                torch.stack([m20, m12, c], 1), torch.stack([m01, m12, m20], 1)], 1)
+        which = torch.where(u > 0.5, 0, torch.where(v > 0.5, 1, torch.where(w > 0.5, 2, 3)))
+    else:
+        raise ValueError(f"pattern must be one of {', '.join(PATTERNS)}, not {pattern!r}")
+    return children[torch.arange(len(triangles), device=triangles.device), which], which
 
 
 class GrowingRows:

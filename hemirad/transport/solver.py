@@ -36,7 +36,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
-ARITHMETIC = 4
+ARITHMETIC = 5
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
@@ -197,7 +197,6 @@ class ProgressiveSolver:
         self.near_reach, self.near_totals = near_reach, near_totals
         self._near: dict[int, NearReceivers] = {}
         self._views: dict[int, HemicubeView] = {}  # rendered for shooters whose near field is not made yet
-        self._leaf_corners = None
         if patches is not None:
             self.use_patches(patches)
 
@@ -207,8 +206,7 @@ class ProgressiveSolver:
     def use_patches(self, patches: PatchShooters) -> None:
         """Shoot with ``patches``, built on the current mesh (whose elements are its leaves)."""
         self.patches = patches
-        # the leaves' corners by leaf position: the near field's sources
-        self._leaf_corners = self.mesh.corners.index_select(0, torch.argsort(patches.tree.leaf.to(self.device)))
+        patches.use_mesh(self.mesh)
         self._forget_kept_light()
 
     def _forget_kept_light(self) -> None:
@@ -344,11 +342,11 @@ class ProgressiveSolver:
                     shot = shot + self.reflectance.index_select(0, members) * ambient
                 member_power = shot * self.areas.index_select(0, members)[:, None]
                 shot_power = member_power.sum(0)
-                leaf_power = None
-                if self.near_reach > 0:  # by the node's initial elements (the near field's sources)
+                source_power = None
+                if self.near_reach > 0:  # by the node's near-field sources
                     lo, hi = patches.bounds(node)
-                    leaf_power = torch.zeros(hi - lo, 3, dtype=shot.dtype, device=self.device).index_add_(
-                        0, patches.leaf.index_select(0, members) - lo, member_power)
+                    source_power = patches.by_source(node, torch.zeros(hi - lo, 3, dtype=shot.dtype, device=self.device)
+                                                     .index_add_(0, patches.leaf.index_select(0, members) - lo, member_power))
                 # taken before the shot: a refining shot may split the node's elements, whose
                 # children then inherit what is left
                 state.unshot.index_add_(0, members, -shot)
@@ -356,7 +354,7 @@ class ProgressiveSolver:
             F = self._shot_form_factors(node, shot_power)
             with self.profiler.phase("update"):
                 near = self.near_receivers_of(node, F)
-                self._receive_incident(incident_power(F, shot_power, near, leaf_power), shot_power)
+                self._receive_incident(incident_power(F, shot_power, near, source_power), shot_power)
         self._views.clear()
         state.shots += 1
         return patch
@@ -390,7 +388,8 @@ class ProgressiveSolver:
                 if node not in transport:
                     F = self.form_factors_of(node)
                     with self.profiler.phase("update"):
-                        transport.add(node, patches.bounds(node), F, self.near_receivers_of(node, F))
+                        transport.add(node, patches.bounds(node), F, self.near_receivers_of(node, F),
+                                      patches.sources(node)[1])
             # the views of nodes that split into their children: each holds a hemicube's pixels
             self._views.clear()
             if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
@@ -473,8 +472,7 @@ class ProgressiveSolver:
         else:
             tree = self.patches.tree
             members = self.patches.members(shooter)
-            lo, hi = self.patches.bounds(shooter)
-            sources = self._leaf_corners[lo:hi]
+            sources = self.patches.sources(shooter)[0]
             point, normal = tree.centroid[shooter].to(self.device), tree.normal[shooter].to(self.device)
         near = near_receivers(self.mesh, members, sources, point, normal, view, F, self.near_reach,
                               self.near_totals, among)

@@ -2,17 +2,19 @@
 matrices, so that a sweep in which every patch shoots its unshot power (Jacobi) costs two
 sparse products instead of a Python loop of shots (docs/DESIGN.md §1.4).
 
-A node's shot is linear in the unshot power of its initial elements (its leaves, whose
+A node's shot is linear in the unshot power of its leaves (the elements of its patch tree),
+summed by the near field's sources they lie in (the elements the solve began with, whose
 power spreads its light to its near receivers, ``nearfield``): receiver j gets
 
     F_sj (sum_l far_scale_l P_l)               from G's row, where j is not near s,
-    sum_l W_lj P_l                             where it is,
+    sum_s W_sj P_s                             where it is,
 
-for leaf powers P_l (3,). Over all nodes that is  far @ Q + near @ P  with ``far`` (T, N) the
-rows with their near receivers removed, Q (N, 3) each node's far-scaled power, ``near``
-(T, T0) the near weights by leaf position and P (T0, 3). Both matrices are kept sorted by
-(receiver, column), whatever order the nodes were added in, so a sum over them is the same
-bit for bit in a run resumed from a checkpoint.
+for leaf powers P_l and source powers P_s (3,). Over all nodes that is  far @ Q + near @ P
+with ``far`` (T, N) the rows with their near receivers removed, Q (N, 3) each node's
+far-scaled power, ``near`` (T, T0) the near weights, a node's k sources in the columns
+lo..lo + k - 1 of its leaf positions [lo, hi), and P (T0, 3) those sources' power. Both
+matrices are kept sorted by (receiver, column), whatever order the nodes were added in, so a
+sum over them is the same bit for bit in a run resumed from a checkpoint.
 """
 from __future__ import annotations
 
@@ -55,9 +57,10 @@ class SweepTransport:
     Args:
         num_elements: T, the receivers (the current mesh).
         num_nodes: N, the patch tree's nodes.
-        num_leaves: T0, the initial elements (leaf positions).
+        num_leaves: T0, the leaves of the patch trees (leaf positions).
     Attributes:
         node_of_leaf: (T0,) the node each leaf shoots with (-1: its patch has not shot yet).
+        column_of_leaf: (T0,) the near matrix's column of each leaf's source.
         far_scale: (T0,) per leaf, the scale of its node's row (``NearReceivers.far_scale``).
         nbytes: what the matrices hold.
     """
@@ -66,6 +69,8 @@ class SweepTransport:
         self.shape = (num_elements, num_nodes, num_leaves)
         self.device = device
         self.node_of_leaf = torch.full((num_leaves,), -1, dtype=torch.int64, device=device)
+        # a node's k sources take the near matrix's columns lo..lo + k - 1 of its leaves' [lo, hi)
+        self.column_of_leaf = torch.arange(num_leaves, device=device)
         self.far_scale = torch.ones(num_leaves, dtype=torch.float64, device=device)
         self._light: dict[int, _NodeLight] = {}
         self._matrices: tuple[torch.Tensor, torch.Tensor | None] | None = None
@@ -74,17 +79,20 @@ class SweepTransport:
     def __contains__(self, node: int) -> bool:
         return node in self._light
 
-    def add(self, node: int, bounds: tuple[int, int], form_factors: torch.Tensor, near: NearReceivers | None) -> None:
+    def add(self, node: int, bounds: tuple[int, int], form_factors: torch.Tensor, near: NearReceivers | None,
+            source: torch.Tensor) -> None:
         """Add ``node``, shooting for the leaves ``bounds`` [lo, hi), with its row ``form_factors``
-        (T,) and its near receivers (None: none)."""
+        (T,), its near receivers (None: none) and ``source`` (hi - lo,) the near field's
+        source each leaf lies in (``PatchShooters.sources``)."""
         lo, hi = bounds
         far = form_factors != 0
         rows = torch.empty(0, dtype=torch.int64, device=self.device)
-        weights = form_factors.new_zeros(hi - lo, 0)
+        weights = form_factors.new_zeros(0, 0)
+        self.column_of_leaf[lo:hi] = lo + source
         if near is not None and len(near.rows):
             far.index_fill_(0, near.rows, False)
             rows, weights = near.rows, near.weights
-            self.far_scale[lo:hi] = near.far_scale
+            self.far_scale[lo:hi] = near.far_scale.index_select(0, source)
         far_index = flatnonzero(far)
         self._light[node] = _NodeLight(lo, far_index, form_factors.index_select(0, far_index), rows, weights)
         self.node_of_leaf[lo:hi] = node
@@ -122,4 +130,6 @@ class SweepTransport:
         node_power = torch.zeros(self.shape[1], 3, dtype=leaf_power.dtype, device=self.device).index_add_(
             0, node, self.far_scale[:, None] * leaf_power)
         incident = far @ node_power
-        return incident if near is None else incident + near @ leaf_power
+        if near is None:
+            return incident
+        return incident + near @ torch.zeros_like(leaf_power).index_add_(0, self.column_of_leaf, leaf_power)
