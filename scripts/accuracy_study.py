@@ -290,7 +290,8 @@ def write_converged_table(path: Path, rows: list[dict]) -> None:
              f"(patches shooting in sweeps, hemicube 128; small receivers by their closed form in every run), every run converged to {CONVERGED_UNSHOT:g} unshot power; "
              "`uniform x f`: the shipped element sizes times f, no refinement; `answer from x f`: that mesh, "
              "then rounds of `refine.criterion: answer` (pattern 2, each round at most doubling the elements, "
-             "its mesh then solved afresh with patches built on it, emitters shooting element by element), "
+             "its mesh then solved afresh with the initial mesh's patches, each holding its elements' children, "
+             "emitters shooting element by element), "
              "a row after each round with the seconds from the start. relMSE as in the study above; "
              "RMS = sqrt(relMSE); estimated: the run's own estimate of that RMS (`stats.json`'s "
              "`estimated_error`).", ""]
