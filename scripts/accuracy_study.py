@@ -219,8 +219,7 @@ CONVERGED_UNIFORM = (2.0, 1.41, 1.0, 0.71, 0.5)
 #: The answer's runs start from the shipped mesh with element sizes times this.
 CONVERGED_ANSWER_START = (2.0, 1.0)
 #: Rounds of the answer's runs. Each round solves its mesh afresh (as a run does); a fourth
-#: round, about 45,000 elements solved with small receivers by their closed form, would take
-#: several minutes a scene and the default is one round.
+#: round (about 45,000 elements) would take a few minutes a scene. A run's default is one.
 CONVERGED_ROUNDS = 3
 CONVERGED_UNSHOT = 1e-3
 

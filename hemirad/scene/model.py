@@ -191,7 +191,7 @@ class RefineOptions:
     # criterion "answer": stop refining when the estimated relative RMS error is below
     # ``tolerance``, or after ``rounds`` refinements (each at most doubles the elements)
     tolerance: float = 0.01
-    rounds: int = 1  # measured (figures/accuracy_converged.md): later rounds stop paying
+    rounds: int = 1  # each round doubles the elements and more than doubles the seconds (figures/accuracy_converged.md)
 
     @property
     def enabled(self) -> bool:
