@@ -68,24 +68,15 @@ def shooter_test(scene: Scene) -> ShooterTest:
 
 
 def refined_patches(scene: Scene, solver: ProgressiveSolver, saved: dict | None = None) -> PatchShooters:
-    """The patches of the solver's mesh after refinement judged on the answer split it: those
-    of the initial mesh, each now holding its elements' children (``solver.patches.patch``,
-    carried through the split; ``saved``: a saved run's ``PatchShooters.state_dict``), but
-    every emitting element shoots alone, as does every one whose object's patch size is none.
-    Near a node, its light leaves from the children of the initial elements its elements lie
-    in (``PatchShooters``' ``source`` and ``source_split``), not from its refined elements:
-    as sources those made office refined twice (12,703 elements) 25.6 million near weights
-    (433 MB, past the sweeps' memory; the children: 201 MB).
-
-    Refinement adds receivers, not shooters: the patches built afresh on a refined mesh, of
-    its elements' sizes, made office refined twice (12,751 elements) 2,577 patches and its
-    solve 32 s; the initial mesh's 601 patches solve it in 24 s, with the same relative MSE
-    against the reference (0.00014; with pixel sums for small receivers, 0.00033: fewer
-    shooters average less of the pixels' luck). The lamp shooting from each of its elements
-    instead of its patches' centroids halves the error on a refined mesh, whose receivers
-    resolve its penumbrae (office refined twice: 0.00025 -> 0.00013; floating, 10,628
-    elements: 0.00031 -> 0.00023); on an unrefined mesh it changes nothing (floating 0.00328
-    -> 0.00331, office 0.00155 -> 0.00156)."""
+    """The patches of the solver's mesh after refinement judged on the answer split it
+    (docs/DESIGN.md §3.8): those of the initial mesh, each now holding its elements' children
+    (``solver.patches.patch``, carried through the split; ``saved``: a saved run's
+    ``PatchShooters.state_dict``), with every emitting element, and every one whose object's
+    patch size is none, alone; near a node its light leaves from the children of the initial
+    elements its elements lie in (``PatchShooters``' ``source_split``). Measured on office
+    refined twice (12,751 elements), relative MSE: patches built afresh at the refined
+    elements' sizes (2,577) 0.00014 in a 32 s solve, these (601) the same in 24 s; the lamp
+    shooting from its patches' centroids 0.00025."""
     mesh, patches = solver.mesh, solver.patches
     group, source = (patches.patch, patches.source) if saved is None else (saved["patch"], saved["source"])
     group = group.cpu().numpy().copy()

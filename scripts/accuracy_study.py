@@ -222,6 +222,10 @@ CONVERGED_ANSWER_START = (2.0, 1.0)
 #: round (about 45,000 elements) would take a few minutes a scene. A run's default is one.
 CONVERGED_ROUNDS = 3
 CONVERGED_UNSHOT = 1e-3
+#: The issue's goal, tried per scene: refinement judged on the answer from the coarser mesh,
+#: rounds until a third of the finest uniform mesh's elements.
+GOAL = "answer to a third of the finest's elements"
+GOAL_START, GOAL_ROUNDS = 2.0, 8
 
 
 def _scored(name, label, value, scene, solver, seconds, comparison) -> dict:
@@ -255,25 +259,59 @@ def converged_study(scenes, log=print) -> list[dict]:
             rows.append(_scored(name, "uniform", factor, scene, solver, time.perf_counter() - start, comparison))
             log(_converged_line(rows[-1]), flush=True)
         for factor in CONVERGED_ANSWER_START:
-            scene = shipped.with_element_sizes_scaled(factor)
-            scene.solver.unshot_fraction = CONVERGED_UNSHOT
-            scene.refine.pattern, scene.refine.criterion = "pattern2", ANSWER
-            start = time.perf_counter()
-            solver = make_solver(scene)
-            refiner = Refiner(scene.refine, solver.emission)
-            label = f"answer from x{factor:g}"
-
-            def shoot_on():
-                solver.run(scene.solver.max_shots, CONVERGED_UNSHOT)
-                rows.append(_scored(name, label, factor, scene, solver, time.perf_counter() - start, comparison))
-                log(_converged_line(rows[-1]), flush=True)
-
-            try:
-                refine_by_answer(solver, refiner, scene.refine.max_elements, 0.0, CONVERGED_ROUNDS, shoot_on,
-                                 patches_for=lambda: refined_patches(scene, solver))
-            finally:
-                solver.close()
+            _answer_run(name, shipped, comparison, factor, CONVERGED_ROUNDS, None, f"answer from x{factor:g}", rows, log)
+        # the goal: the finest uniform mesh's error with a third of its elements and half its seconds
+        finest = max((r for r in rows if r["scene"] == name and r["method"] == "uniform"), key=lambda r: r["elements"])
+        _answer_run(name, shipped, comparison, GOAL_START, GOAL_ROUNDS, finest["elements"] // 3, GOAL, rows, log,
+                    every_round=False)
     return rows
+
+
+def _answer_run(name, shipped, comparison, factor: float, rounds: int, budget: int | None, label: str,
+                rows: list[dict], log, every_round: bool = True) -> None:
+    """Refinement judged on the answer from the shipped mesh's elements times ``factor``,
+    ``rounds`` rounds within ``budget`` elements (None: the scene's); a row after every
+    round (``every_round``), else after the last."""
+    scene = shipped.with_element_sizes_scaled(factor)
+    scene.solver.unshot_fraction = CONVERGED_UNSHOT
+    scene.refine.pattern, scene.refine.criterion = "pattern2", ANSWER
+    if budget is not None:
+        scene.refine.max_elements = budget
+    start = time.perf_counter()
+    solver = make_solver(scene)
+    refiner = Refiner(scene.refine, solver.emission)
+    last = []
+
+    def shoot_on():
+        solver.run(scene.solver.max_shots, CONVERGED_UNSHOT)
+        last[:] = [_scored(name, label, factor, scene, solver, time.perf_counter() - start, comparison)]
+        if every_round:
+            rows.append(last[0])
+            log(_converged_line(rows[-1]), flush=True)
+
+    try:
+        refine_by_answer(solver, refiner, scene.refine.max_elements, 0.0, rounds, shoot_on,
+                         patches_for=lambda: refined_patches(scene, solver))
+    finally:
+        solver.close()
+    if not every_round:
+        rows.append(last[0])
+        log(_converged_line(rows[-1]), flush=True)
+
+
+def _goal_line(rows: list[dict]) -> str:
+    """Whether the goal run reached the finest uniform mesh's relMSE with at most a third of
+    its elements in at most half its seconds."""
+    goal = [r for r in rows if r["method"] == GOAL]
+    if not goal:
+        return ""
+    finest = max((r for r in rows if r["method"] == "uniform"), key=lambda r: r["elements"])
+    goal = goal[-1]
+    met = (goal["relative_mse"] <= finest["relative_mse"] and 3 * goal["elements"] <= finest["elements"]
+           and 2 * goal["seconds"] <= finest["seconds"])
+    return (f"Goal ({'met' if met else 'not met'}): relMSE {goal['relative_mse']:.5f} against the finest uniform "
+            f"mesh's {finest['relative_mse']:.5f}, with {goal['elements'] / finest['elements']:.0%} of its elements "
+            f"in {goal['seconds'] / finest['seconds']:.0%} of its seconds.")
 
 
 def _converged_line(r: dict) -> str:
@@ -291,7 +329,9 @@ def write_converged_table(path: Path, rows: list[dict]) -> None:
              "then rounds of `refine.criterion: answer` (pattern 2, each round at most doubling the elements, "
              "its mesh then solved afresh with the initial mesh's patches, each holding its elements' children, "
              "emitters shooting element by element), "
-             "a row after each round with the seconds from the start. relMSE as in the study above; "
+             "a row after each round with the seconds from the start; `answer to a third of the finest's elements`: "
+             f"from x{GOAL_START:g}, rounds until a third of the finest uniform mesh's elements (the goal: that mesh's "
+             "relMSE with a third of its elements in half its seconds). relMSE as in the study above; "
              "RMS = sqrt(relMSE); estimated: the run's own estimate of that RMS (`stats.json`'s "
              "`estimated_error`).", ""]
     for name in dict.fromkeys(r["scene"] for r in rows):
@@ -302,7 +342,7 @@ def write_converged_table(path: Path, rows: list[dict]) -> None:
             lines.append(f"| {label} | {r['elements']} | {r['shots']} | {r['seconds']:.1f} | "
                          f"{r['relative_mse']:.5f} | {math.sqrt(r['relative_mse']):.4f} | "
                          f"{r['estimated_error']:.4f} | {r['ssim']:.4f} |")
-        lines.append("")
+        lines += ["", _goal_line([r for r in rows if r["scene"] == name]), ""]
     path.write_text("\n".join(lines))
 
 

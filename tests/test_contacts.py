@@ -98,7 +98,7 @@ MIN_ANGLE, MAX_ANGLE = 28.0, 124.0
 
 def load_with_contacts(name: str) -> Scene:
     scene = hemirad.load_scene(name)
-    scene.meshing.contacts = True  # off by default
+    scene.meshing.contacts = True  # by default only when refining by the answer
     return scene
 
 
@@ -238,7 +238,8 @@ def test_the_scene_key():
             "objects": [{"type": "quad", "material": "lamp", "element_size": 1.0,
                          "corners": [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]}],
             "camera": {"position": [0, 0, 3], "look_at": [0, 0, 0]}}
-    assert parse_scene(base).meshing.contacts is False  # opt-in: see the README's Contact meshing
+    assert parse_scene(base).meshing.contacts == "auto"
+    assert parse_scene({**base, "meshing": {"contacts": "auto"}}).meshing.contacts == "auto"
     assert parse_scene({**base, "meshing": {"contacts": True}}).meshing.contacts is True
     assert parse_scene({**base, "meshing": {"contacts": False}}).meshing.contacts is False
     with pytest.raises(SceneError, match=r"meshing\.contacts"):
@@ -363,7 +364,7 @@ def beside_blocks_errors(contacts: bool, element_size: float) -> np.ndarray:
     from hemirad.evaluation import reference
 
     scene = hemirad.load_scene("cornell_box")
-    scene.meshing.contacts = contacts  # set either way: the default is off
+    scene.meshing.contacts = contacts  # set either way: the default (auto) is off without refinement
     for obj in scene.objects:
         if obj.name == "floor" or "block" in obj.name:
             obj.element_size = element_size
@@ -400,3 +401,24 @@ def test_floor_beside_the_cornell_blocks_matches_the_reference():
     assert within >= 0.7, conforming
     assert (np.abs(straddling) <= 0.05).mean() < 0.6, straddling
     assert np.abs(conforming).mean() < 0.6 * np.abs(straddling).mean()
+
+
+def test_contacts_are_meshed_by_default_when_refinement_judges_the_answer():
+    # auto: the Cornell floor loses the blocks' footprints only with refine.criterion answer
+    # (whose small elements beside the contacts it needs), a run's checkpoint records which
+    from hemirad import checkpoint as checkpoints
+
+    scene = hemirad.load_scene("cornell_box")
+    assert scene.meshing.contacts == "auto"
+    plain = build_mesh(scene)
+    scene.refine.pattern, scene.refine.criterion = "pattern2", "answer"
+    answered = build_mesh(scene)
+    scene.meshing.contacts = True
+    assert_same_mesh(answered, build_mesh(scene))
+    floor = [m.areas[m.surface == m.surface_names.index("floor")].sum() for m in (plain, answered)]
+    assert float(floor[1]) < float(floor[0]) - 0.01 * float(floor[0])  # the footprints left out
+    assert checkpoints.fingerprint(scene)["meshing.contacts"] is True
+    scene.refine.criterion = "gradient"
+    scene.meshing.contacts = "auto"
+    assert_same_mesh(plain, build_mesh(scene))
+    assert checkpoints.fingerprint(scene)["meshing.contacts"] is False

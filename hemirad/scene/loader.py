@@ -30,8 +30,9 @@ The schema, all lengths in scene units::
     grids: [{name: desk, work_plane: {height: 0.75, min: [x, z], max: [x, z]}, spacing: 0.2}]
 
 A material may give ``flux: <lumens>`` (and ``colour``) instead of ``emission``.
-    meshing: {contacts: false, intersections: true}   # contacts: mesh touched surfaces conforming to
-                                       # what touches them; intersections: cut surfaces where others
+    meshing: {contacts: auto, intersections: true}    # contacts: mesh touched surfaces conforming to
+                                       # what touches them (auto: when refining by the answer);
+                                       # intersections: cut surfaces where others
                                        # pass through them, what closed solids hold dropped
 
 This module reads the top level, materials and objects; the checks of single values are in

@@ -337,8 +337,8 @@ def build_mesh(scene: Scene) -> Mesh:
 
     With ``scene.meshing.intersections`` (on by default), surfaces are cut where others pass
     through them and what lies inside a closed solid is left out
-    (``hemirad.scene.intersections``). Then, with ``scene.meshing.contacts`` (off by
-    default), a planar surface that others touch is meshed conforming to where they touch,
+    (``hemirad.scene.intersections``). Then, with ``scene.meshing.contacts`` (by default
+    with refinement judged on the answer), a planar surface that others touch is meshed conforming to where they touch,
     what they cover left out (``hemirad.scene.contacts``); a surface they cover whole is
     left out altogether.
     """
@@ -348,7 +348,7 @@ def build_mesh(scene: Scene) -> Mesh:
         surfaces.extend(builders[type(obj)](obj, label, scene))
     if scene.meshing.intersections:
         surfaces = _cut_at_intersections(surfaces)
-    if scene.meshing.contacts:
+    if scene.refine.resolved_contacts(scene.meshing.contacts):
         surfaces = _conform_to_contacts(surfaces)
 
     vertices, triangles, surface, material = [], [], [], []

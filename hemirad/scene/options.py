@@ -91,7 +91,10 @@ def read_meshing(check: Checker, v) -> MeshingOptions:
     m = check.section(v, "meshing", "a mapping of meshing options", _MESHING_KEYS)
     opts = MeshingOptions()
     if "contacts" in m:
-        opts.contacts = check.boolean(m["contacts"], "meshing.contacts")
+        contacts = m["contacts"]
+        if contacts != "auto" and not isinstance(contacts, bool):
+            check.fail("meshing.contacts", "true, false or auto", contacts)
+        opts.contacts = contacts
     if "intersections" in m:
         opts.intersections = check.boolean(m["intersections"], "meshing.intersections")
     return opts
