@@ -361,14 +361,18 @@ def _pixel(point: np.ndarray, camera, width: int, height: int) -> tuple[int, int
 def beside_blocks_errors(contacts: bool, element_size: float) -> np.ndarray:
     """Relative errors of the converged Cornell box's view against the reference at the
     pixels of floor points 1 cm outside the blocks that are visible and wholly floor."""
-    from hemirad.evaluation import reference
-
     scene = hemirad.load_scene("cornell_box")
     scene.meshing.contacts = contacts  # set either way: the default (auto) is off without refinement
     for obj in scene.objects:
         if obj.name == "floor" or "block" in obj.name:
             obj.element_size = element_size
-    result = hemirad.solve(scene, progress=None)
+    return errors_beside_blocks(hemirad.solve(scene, progress=None))
+
+
+def errors_beside_blocks(result) -> np.ndarray:
+    """``beside_blocks_errors`` of a Cornell box ``result``."""
+    from hemirad.evaluation import reference
+
     ref = reference.Reference.load(REFERENCES, "cornell_box")
     camera = ref.camera
     view = reference.radiance_view(result.mesh, result.vertex_radiosity(), camera)
@@ -385,6 +389,21 @@ def beside_blocks_errors(contacts: bool, element_size: float) -> np.ndarray:
         if floor_share[row, col] > 0.99:
             errors.append(view[row, col].mean() / ref.radiance[row, col].mean() - 1)
     return np.asarray(errors)
+
+
+@pytest.mark.slow
+def test_the_answer_resolves_the_floor_beside_the_cornell_blocks():
+    """The default adaptive run, refinement judged on the answer (contacts meshed, auto), three
+    rounds from the shipped mesh: 1 cm outside the blocks the floor is within 5% of the path
+    tracer at most points (measured: 22 of 26, median 3.0%; 12 of 26 without contacts)."""
+    scene = hemirad.load_scene("cornell_box")
+    scene.solver.unshot_fraction = 1e-3
+    scene.refine.pattern, scene.refine.criterion, scene.refine.rounds, scene.refine.tolerance = \
+        "pattern2", "answer", 3, 0.0
+    errors = errors_beside_blocks(hemirad.solve(scene, progress=None))
+    assert len(errors) >= 20
+    assert (np.abs(errors) <= 0.05).mean() >= 0.75, errors
+    assert np.median(np.abs(errors)) < 0.04, errors
 
 
 @pytest.mark.slow
