@@ -275,3 +275,26 @@ def test_a_bad_patch_size_is_one_paragraph_naming_the_key(tmp_path):
     bad.write_text(text.replace("solver:\n", "solver:\n  patch_size: -1\n", 1))
     with pytest.raises(SceneError, match=r"solver\.patch_size"):
         hemirad.load_scene(bad)
+
+
+def test_sweep_matrices_are_the_same_whatever_batches_their_entries_came_in():
+    # a resumed run adds its nodes in other batches than the run it continues: the matrix, and
+    # so every sum over it, must not depend on that
+    from hemirad.transport.sweep import _SortedCSR
+
+    g = torch.Generator().manual_seed(5)
+    shape = (40, 30)
+    cells = torch.randperm(shape[0] * shape[1], generator=g)[:300]
+    rows, columns = cells // shape[1], cells % shape[1]
+    values = torch.rand(300, generator=g, dtype=torch.float64)
+    whole = _SortedCSR(shape, torch.device("cpu"))
+    whole.merge(rows, columns, values)
+    parts = _SortedCSR(shape, torch.device("cpu"))
+    for part in torch.randperm(300, generator=g).split([170, 1, 129]):
+        parts.merge(rows[part], columns[part], values[part])
+    for a, b in ((whole.crow, parts.crow), (whole.columns, parts.columns), (whole.values, parts.values)):
+        assert torch.equal(a, b)
+    dense = torch.zeros(shape, dtype=torch.float64).index_put_((rows, columns), values)
+    assert torch.equal(whole.matrix().to_dense(), dense)
+    power = torch.rand(shape[1], 3, generator=g, dtype=torch.float64)
+    assert torch.equal(whole.matrix() @ power, parts.matrix() @ power)
