@@ -145,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="refine during the first N shots, then shoot on the mesh they made (refine.shots)")
     refine.add_argument("--tolerance", type=_fraction, metavar="E",
                         help="criterion answer: refine until the estimated relative error is below E "
-                             "(refine.tolerance, default 0.01)")
+                             "(refine.tolerance, default 0.002)")
     refine.add_argument("--rounds", type=_depth, metavar="N",
                         help="criterion answer: at most N refinements between converged solves (refine.rounds)")
     pictures = parser.add_argument_group("pictures")
