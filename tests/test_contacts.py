@@ -332,32 +332,6 @@ def _floor_points_beside_blocks(offset: float) -> list[np.ndarray]:
     return points
 
 
-def _visible(point: np.ndarray, eye: np.ndarray, corners: np.ndarray) -> bool:
-    """Whether the segment from ``point`` to ``eye`` misses every triangle (K, 3, 3)."""
-    d = eye - point
-    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-    h = np.cross(d, e2)
-    a = (e1 * h).sum(1)
-    ok = np.abs(a) > 1e-12
-    f = 1.0 / np.where(ok, a, 1.0)
-    s = point - corners[:, 0]
-    u = f * (s * h).sum(1)
-    q = np.cross(s, e1)
-    v = f * (q @ d)
-    t = f * (e2 * q).sum(1)
-    return not (ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9) & (t < 1)).any()
-
-
-def _pixel(point: np.ndarray, camera, width: int, height: int) -> tuple[int, int]:
-    """(row, column) of the pixel ``point`` projects into (top row first, as images are)."""
-    from hemirad.output.render import camera_basis
-
-    e = camera_basis(camera) @ (point - np.asarray(camera.position))
-    f = 1.0 / math.tan(math.radians(camera.fov) / 2)
-    x, y = f * height / width * e[0] / -e[2], f * e[1] / -e[2]
-    return int((1 - y) / 2 * height), int((x + 1) / 2 * width)
-
-
 def beside_blocks_errors(contacts: bool, element_size: float) -> np.ndarray:
     """Relative errors of the converged Cornell box's view against the reference at the
     pixels of floor points 1 cm outside the blocks that are visible and wholly floor."""
@@ -372,23 +346,11 @@ def beside_blocks_errors(contacts: bool, element_size: float) -> np.ndarray:
 def errors_beside_blocks(result) -> np.ndarray:
     """``beside_blocks_errors`` of a Cornell box ``result``."""
     from hemirad.evaluation import reference
+    from hemirad.evaluation.pixels import errors_at_points
 
-    ref = reference.Reference.load(REFERENCES, "cornell_box")
-    camera = ref.camera
-    view = reference.radiance_view(result.mesh, result.vertex_radiosity(), camera)
-    mesh = result.mesh
-    on_floor = mesh.surface == mesh.surface_names.index("floor")
-    _, floor_share = reference.coverage(mesh, on_floor, camera)
-    height, width = ref.radiance.shape[:2]
-    corners = mesh.corners.numpy()
-    errors = []
-    for point in _floor_points_beside_blocks(10.0):  # millimetres
-        if not _visible(point, np.asarray(camera.position, dtype=np.float64), corners):
-            continue
-        row, col = _pixel(point, camera, width, height)
-        if floor_share[row, col] > 0.99:
-            errors.append(view[row, col].mean() / ref.radiance[row, col].mean() - 1)
-    return np.asarray(errors)
+    floor = result.mesh.surface_names.index("floor")
+    return errors_at_points(result, _floor_points_beside_blocks(10.0), floor,  # millimetres
+                            reference.Reference.load(REFERENCES, "cornell_box"))
 
 
 @pytest.mark.slow
