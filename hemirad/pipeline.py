@@ -536,13 +536,13 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
 
 def _check_answer_refinement(scene: Scene) -> None:
     """Refinement judged on the answer shoots by patches (each refined mesh is solved afresh by
-    patches built on it)."""
+    the initial mesh's patches)."""
     if not scene.refine.by_answer:
         return
     if scene.solver.patch_size in (None, "none"):
         raise _key_error(scene, "refine.criterion", "a per-shot criterion when every element shoots "
                          "(solver.patch_size none)", ANSWER, "Refinement judged on the answer solves each "
-                         "refined mesh by patches built on it; use solver.patch_size auto, or another criterion.")
+                         "refined mesh by the initial mesh's patches; use solver.patch_size auto, or another criterion.")
 
 
 def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: "_CheckpointWriter | None",

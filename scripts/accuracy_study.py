@@ -261,7 +261,7 @@ def converged_study(scenes, log=print) -> list[dict]:
         for factor in CONVERGED_ANSWER_START:
             _answer_run(name, shipped, comparison, factor, CONVERGED_ROUNDS, None, f"answer from x{factor:g}", rows, log)
         # the goal: the finest uniform mesh's error with a third of its elements and half its seconds
-        finest = max((r for r in rows if r["scene"] == name and r["method"] == "uniform"), key=lambda r: r["elements"])
+        finest = _finest_uniform([r for r in rows if r["scene"] == name])
         _answer_run(name, shipped, comparison, GOAL_START, GOAL_ROUNDS, finest["elements"] // 3, GOAL, rows, log,
                     every_round=False)
     return rows
@@ -299,13 +299,18 @@ def _answer_run(name, shipped, comparison, factor: float, rounds: int, budget: i
         log(_converged_line(rows[-1]), flush=True)
 
 
+def _finest_uniform(rows: list[dict]) -> dict:
+    """The uniform run of most elements among one scene's ``rows``."""
+    return max((r for r in rows if r["method"] == "uniform"), key=lambda r: r["elements"])
+
+
 def _goal_line(rows: list[dict]) -> str:
     """Whether the goal run reached the finest uniform mesh's relMSE with at most a third of
     its elements in at most half its seconds."""
     goal = [r for r in rows if r["method"] == GOAL]
     if not goal:
         return ""
-    finest = max((r for r in rows if r["method"] == "uniform"), key=lambda r: r["elements"])
+    finest = _finest_uniform(rows)
     goal = goal[-1]
     met = (goal["relative_mse"] <= finest["relative_mse"] and 3 * goal["elements"] <= finest["elements"]
            and 2 * goal["seconds"] <= finest["seconds"])

@@ -11,8 +11,8 @@ and a threshold cannot be tuned to a mesh size. Here the judge is the solution i
    element and its neighbours (``element_errors``).
 2. **Split** the elements of the largest squared error times area (their share of the
    image's squared error) first, as many as the round's element budget allows.
-3. **Solve the refined mesh afresh** (``patches_for``: with patches built on it, which the
-   scene gives), or without a scene, **regather**: a split element's children inherit its radiosity; each child then gets
+3. **Solve the refined mesh afresh** (``patches_for``: with the initial mesh's patches, each
+   now holding its elements' children, which the scene gives), or without a scene, **regather**: a split element's children inherit its radiosity; each child then gets
    what every shooter has sent so far reaching it: each node whose light reached a split
    element is rendered on the refined mesh and its accumulated power
    (``PatchShooters.sent``) is spread by its form factors to the children, as its shots
@@ -20,10 +20,9 @@ and a threshold cannot be tuned to a mesh size. Here the judge is the solution i
    element had received, so the redistribution moves light between siblings and creates
    none: power is conserved exactly, and what a child gained or lost over its inherited
    value joins its unshot radiosity, to be shot on. Measured (figures/accuracy_converged.md):
-   the fresh solve is the better answer on the same mesh (the patches follow the refined
-   elements and its emitters shoot element by element), and with sweeps it costs about what
-   the regather and the shots after it cost: both render every node's hemicube once on the
-   new mesh.
+   the fresh solve is the better answer on the same mesh (its emitters shoot element by
+   element), and with sweeps it costs about what the regather and the shots after it cost:
+   both render every node's hemicube once on the new mesh.
 4. **Shoot on** to the stopping rule, and repeat while the budget and the tolerance allow.
 """
 from __future__ import annotations

@@ -108,8 +108,7 @@ def group_patches(mesh: Mesh, group: np.ndarray) -> PatchTree:
     order = np.argsort(key, kind="stable")
     groups = []
     for members in np.split(order, np.flatnonzero(np.diff(key[order])) + 1):
-        normal = (normals[members] * areas[members, None]).sum(0)
-        groups.append((members, *plane_axes(normal / np.linalg.norm(normal))))
+        groups.append((members, *_mean_plane_axes(members, normals, areas)))
     return _grow_trees(mesh, groups)
 
 
@@ -137,9 +136,7 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
         if len(members) == 1:
             alone.append(members)
             continue
-        normal = (normals[members] * areas[members, None]).sum(0)
-        normal /= np.linalg.norm(normal)
-        u, v = plane_axes(normal)
+        u, v = _mean_plane_axes(members, normals, areas)
         size = float(np.median(patch_size[members]))
         if size <= 0:  # patches turned off
             out += _each_alone(members, normals)
@@ -190,9 +187,14 @@ def _curved_cells(members: np.ndarray, owner: np.ndarray, centroids: np.ndarray,
                 if len(part) > 1 and _crossed(part, s, owner, low, high):
                     out += _each_alone(part, normals)
                     continue
-                normal = (normals[part] * areas[part, None]).sum(0)
-                out.append((part, *plane_axes(normal / np.linalg.norm(normal))))
+                out.append((part, *_mean_plane_axes(part, normals, areas)))
     return out
+
+
+def _mean_plane_axes(members: np.ndarray, normals: np.ndarray, areas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``plane_axes`` of the area-weighted mean normal of the elements ``members`` (k,)."""
+    normal = (normals[members] * areas[members, None]).sum(0)
+    return plane_axes(normal / np.linalg.norm(normal))
 
 
 def _each_alone(elements: np.ndarray, normals: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:

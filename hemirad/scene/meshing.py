@@ -338,8 +338,8 @@ def build_mesh(scene: Scene) -> Mesh:
     With ``scene.meshing.intersections`` (on by default), surfaces are cut where others pass
     through them and what lies inside a closed solid is left out
     (``hemirad.scene.intersections``). Then, with ``scene.meshing.contacts`` (by default
-    with refinement judged on the answer), a planar surface that others touch is meshed conforming to where they touch,
-    what they cover left out (``hemirad.scene.contacts``); a surface they cover whole is
+    with refinement judged on the answer), a planar surface that others touch is meshed
+    conforming to where they touch, what they cover left out (``hemirad.scene.contacts``); a surface they cover whole is
     left out altogether.
     """
     surfaces: list[_Surface] = []

@@ -453,7 +453,7 @@ class ProgressiveSolver:
     def near_receivers_of(self, shooter: int, F: torch.Tensor, among: torch.Tensor | None = None,
                           view: HemicubeView | None = None) -> NearReceivers | None:
         """The receivers near ``shooter`` (a node; without patches, an element) that get its
-        light as its initial elements send it (``nearfield``), kept while the mesh is
+        light as its near-field sources send it (``nearfield``), kept while the mesh is
         unchanged; None without a near field (``near_reach`` 0). ``view``: what the hemicube that gave
         the row F (T,) saw (default: the one rendered for this shot, else a new render).
         With ``among`` (R,), only those among these elements, unscaled, and not kept."""
