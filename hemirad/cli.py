@@ -40,6 +40,13 @@ def _non_negative_int(text: str) -> int:
     return value
 
 
+def _count(text: str) -> int:
+    value = _number(text, int)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
+    return value
+
+
 def _depth(text: str) -> int:
     value = _number(text, int)
     if not 0 <= value <= 16:
@@ -125,6 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "Lambert's closed form times the visibility the hemicube finds; pixels, "
                              "their pixels' sum as in the paper; auto (the default), closed_form when "
                              "refining, else pixels (solver.small_receivers)")
+    parser.add_argument("--error-samples", type=_count, metavar="N",
+                        help="points at which the solution checks its own error by final gathers "
+                             "(stats.json's estimated_error; 0: none; solver.error_samples, default 1000)")
     parser.add_argument("--device", type=_device,
                         help="where the solve runs (solver.device): " +
                              "; ".join(f"{name}, {meaning}" for name, meaning in DEVICES.items()))
@@ -144,8 +154,8 @@ def build_parser() -> argparse.ArgumentParser:
     refine.add_argument("--refine-shots", type=_positive_int, metavar="N",
                         help="refine during the first N shots, then shoot on the mesh they made (refine.shots)")
     refine.add_argument("--tolerance", type=_fraction, metavar="E",
-                        help="criterion answer: refine until the estimated relative error is below E "
-                             "(refine.tolerance, default 0.002)")
+                        help="criterion answer: refine until the estimated relative RMS error is below E "
+                             "(refine.tolerance, default 0.01)")
     refine.add_argument("--rounds", type=_depth, metavar="N",
                         help="criterion answer: at most N refinements between converged solves (refine.rounds)")
     pictures = parser.add_argument_group("pictures")
@@ -209,7 +219,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     solver_options = {"max_shots": ("--shots", args.shots), "unshot_fraction": ("--unshot-fraction",
                       args.unshot_fraction), "resolution": ("--resolution", args.resolution),
                       "device": ("--device", args.device), "patch_size": ("--patch-size", args.patch_size),
-                      "small_receivers": ("--small-receivers", args.small_receivers)}
+                      "small_receivers": ("--small-receivers", args.small_receivers),
+                      "error_samples": ("--error-samples", args.error_samples)}
     refine_options = {"pattern": ("--refine", args.refine), "criterion": ("--criterion", args.criterion),
                       "threshold": ("--threshold", args.threshold),
                       "relative": ("--relative" if args.relative else "--absolute", args.relative),
@@ -255,8 +266,11 @@ def _solve_and_write(args: argparse.Namespace, argv: list[str] | None, scene, ou
         paths["checkpoint"] = checkpoint
     stats = result.stats
     resumed = f" (resumed at shot {stats['resumed_from_shot']})" if stats.get("resumed_from_shot") is not None else ""
+    estimate = stats.get("estimated_error")
+    estimate = (f", estimated error {estimate:.1%} +- {stats['estimated_error_standard_error']:.1%}"
+                if estimate is not None else "")
     say(f"hemirad: {stats['elements']} elements, {stats['shots']} shots{resumed}, unshot fraction "
-        f"{stats['unshot_fraction']:.3g}, {time.perf_counter() - start:.1f} s")
+        f"{stats['unshot_fraction']:.3g}{estimate}, {time.perf_counter() - start:.1f} s")
     for kind, path in paths.items():
         say(f"  {kind:10s} {path}")
     for line in lighting_table(result):

@@ -27,6 +27,7 @@ import torch
 
 from hemirad import checkpoint as checkpoints
 from hemirad.adaptive.answer import RoundReport, estimated_relative_error, refine_by_answer
+from hemirad.evaluation.gathered_error import GatheredError, gathered_error
 from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver, refined_patches
 from hemirad.core.atomic import remove_stale_temporaries
@@ -99,6 +100,20 @@ class Result:
     stats: dict = field(default_factory=dict)
     sensors: survey.SensorReadings | None = None
     grids: dict[str, survey.GridReadings] = field(default_factory=dict)
+
+    @classmethod
+    def of_solver(cls, scene: Scene, solver: ProgressiveSolver, stats: dict | None = None) -> "Result":
+        """The solver's current solution (on the CPU)."""
+        s = solver.state
+        return cls(scene, solver.mesh.to("cpu"), s.radiosity.cpu(), s.unshot.cpu(), solver.reflectance.cpu(),
+                   solver.emission.cpu(), {} if stats is None else stats)
+
+    def estimate_error(self) -> GatheredError | None:
+        """The displayed solution's relative RMS error, estimated by final gathers at the
+        scene's ``solver.error_samples`` points (``evaluation.gathered_error``); None for 0."""
+        o = self.scene.solver
+        return gathered_error(self.mesh, self.display_radiosity, self.emission, self.reflectance,
+                              o.error_samples, o.resolution)
 
     @property
     def ambient(self) -> torch.Tensor:
@@ -495,7 +510,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     solver = make_solver(scene, mesh, device=device)
     before = {"mesh": 0.0, "solve": 0.0}  # seconds spent by the runs this one continues
     resumed_from = None
-    rounds, answer_refiner = None, None
+    rounds, answer_refiner, estimated = None, None, None
     try:
         check_before_solving(scene, mesh, solver)
         if saved is not None:
@@ -510,8 +525,8 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
             saver = _CheckpointWriter(checkpoint, fingerprint, checkpoint_every, solver, mesh.num_elements, elapsed,
                                       None if saved is None else solver.state.shots)
         if scene.refine.by_answer:
-            rounds, answer_refiner = _refine_by_answer(scene, solver, progress, saver,
-                                                       None if saved is None else saved[1], checkpoint)
+            rounds, answer_refiner, estimated = _refine_by_answer(scene, solver, progress, saver,
+                                                                  None if saved is None else saved[1], checkpoint)
             state = solver.state
         else:
             state = solver.run(options.max_shots, options.unshot_fraction,
@@ -520,12 +535,17 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
             saver.finish()
     finally:
         solver.close()
-    final = solver.mesh.to("cpu")
-    stats = _stats(scene, solver, final, mesh.num_elements, elapsed(), resumed_from, rounds, answer_refiner)
+    result = Result.of_solver(scene, solver)
+    final = result.mesh
+    stats = result.stats
+    stats.update(_stats(scene, solver, final, mesh.num_elements, elapsed(), resumed_from, rounds, answer_refiner))
     stats.update(units=scene.units, metres_per_unit=scene.metres_per_unit,
                  flux=photometry.flux_emissions(scene, mesh))
-    result = Result(scene, final, state.radiosity.cpu(), state.unshot.cpu(), solver.reflectance.cpu(),
-                    solver.emission.cpu(), stats)
+    estimating = time.perf_counter()
+    if estimated is None or estimated[0] != (state.shots, final.num_elements):  # not the last round's
+        estimated = (None, result.estimate_error())
+    stats.update(_estimate_stats(estimated[1], estimated_relative_error(final, result.radiosity)))
+    stats["seconds"]["estimate"] = time.perf_counter() - estimating
     if scene.sensors or scene.grids:
         measured = time.perf_counter()
         result.sensors, result.grids = survey.measure(scene, final, result.display_radiosity)
@@ -546,11 +566,12 @@ def _check_answer_refinement(scene: Scene) -> None:
 
 
 def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: "_CheckpointWriter | None",
-                      run: dict | None, path) -> tuple[list[RoundReport], Refiner]:
+                      run: dict | None, path) -> tuple[list[RoundReport], Refiner, tuple | None]:
     """Shoot to the stopping rule and refine where the answer is worst, in rounds
     (``adaptive.answer``), checkpointed by ``saver`` after shots and after every round's
-    split, and resumed from a checkpoint's ``run`` (read from ``path``); returns the rounds
-    and the refiner that split."""
+    split, and resumed from a checkpoint's ``run`` (read from ``path``); returns the rounds,
+    the refiner that split, and the last round's estimate (``GatheredError`` or None) with
+    the (shots, elements) it was made at."""
     options, refine = scene.solver, scene.refine
     refiner = Refiner(refine, solver.emission)
     reports: list[RoundReport] = []
@@ -563,6 +584,16 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
             raise HemiradInputError(f"cannot resume from {path}: its rounds of refinement judged on the answer "
                                     f"are missing or do not fit ({exc}). Start without --resume to begin "
                                     "afresh.") from exc
+    last: list = [None]  # (shots, elements) and the estimate made there
+
+    def estimate() -> float:
+        """The round's estimate: by final gathers, or where the scene asks for none, the
+        interpolation estimate of the element ranking."""
+        result = Result.of_solver(scene, solver)
+        gathered = result.estimate_error()
+        last[0] = ((solver.state.shots, solver.mesh.num_elements), gathered)
+        return gathered.relative_rms if gathered else estimated_relative_error(result.mesh, result.radiosity)
+
     shot_done = progress
     if saver is not None:
         saver.answer = lambda: {"refiner": refiner.state_dict(), "rounds": [dataclasses.asdict(r) for r in reports]}
@@ -570,8 +601,8 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
     refine_by_answer(solver, refiner, refine.max_elements, refine.tolerance, refine.rounds,
                      lambda: solver.run(options.max_shots, options.unshot_fraction, shot_done),
                      report=None if saver is None else (lambda _: saver.save()), reports=reports,
-                     patches_for=lambda: refined_patches(scene, solver))
-    return reports, refiner
+                     patches_for=lambda: refined_patches(scene, solver), estimate=estimate)
+    return reports, refiner, last[0]
 
 
 class _CheckpointWriter:
@@ -616,6 +647,16 @@ class _CheckpointWriter:
             self.save()
 
 
+def _estimate_stats(gathered: GatheredError | None, interpolation: float) -> dict:
+    """stats.json's error estimates: by final gathers (``evaluation.gathered_error``; None
+    where the scene asks for no samples) and the interpolation estimate refinement ranks
+    elements by (``adaptive.answer``)."""
+    return {"estimated_error": gathered.relative_rms if gathered else None,
+            "estimated_error_standard_error": gathered.standard_error if gathered else None,
+            "error_samples": gathered.samples if gathered else 0,
+            "interpolation_error": interpolation}
+
+
 def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_elements: int, seconds: dict,
            resumed_from: int | None, rounds: list[RoundReport] | None = None,
            answer_refiner: Refiner | None = None) -> dict:
@@ -641,8 +682,6 @@ def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_element
                    "absolute_threshold": refiner.threshold if refiner else None,
                    "splits": refiner.splits if refiner else 0, "tolerance": scene.refine.tolerance if scene.refine.by_answer else None,
                    "rounds": [dataclasses.asdict(r) for r in rounds] if rounds is not None else None},
-        # the estimated relative RMS error of the picture (``adaptive.answer``), for every run
-        "estimated_error": estimated_relative_error(final, state.radiosity.cpu()),
         "largest_angle_degrees": angle_quality(final),
         "emitted_power": solver.emitted_power.tolist(),
         # signed: overshooting leaves some unshot radiosity negative; emitted = absorbed + escaped + unshot

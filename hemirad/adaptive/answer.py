@@ -196,7 +196,8 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
                      rounds: int, shoot_on: Callable[[], None],
                      report: Callable[[RoundReport], None] | None = None,
                      reports: list[RoundReport] | None = None,
-                     patches_for: Callable[[], "PatchShooters"] | None = None) -> list[RoundReport]:
+                     patches_for: Callable[[], "PatchShooters"] | None = None,
+                     estimate: Callable[[], float] | None = None) -> list[RoundReport]:
     """Alternate shooting to the stopping rule (``shoot_on``) and refining where the answer
     is worst, until the estimated relative error is under ``tolerance``, the mesh has
     ``max_elements``, or ``rounds`` refinements were made. Each round may at most double
@@ -205,6 +206,9 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
     ``refiner`` supplies the split pattern, the 2:1 grading and the depth and size limits.
     ``patches_for()``: the patches of the solver's mesh just split, to solve it afresh with
     (``ProgressiveSolver.restart``); None: ``regather`` and shoot on.
+    ``estimate()``: the solver's solution's estimated relative error, which the rounds stop
+    by (``pipeline`` passes the final-gather estimate, ``gathered_error``); None: the
+    interpolation estimate the elements are ranked by (``estimated_relative_error``).
     ``report`` is called after each round's split. Returns one report per round (the first
     is the unrefined solve), appended to ``reports`` when given: a run resumed from a
     checkpoint passes the rounds it had finished and goes on with the next (its solver
@@ -215,11 +219,11 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
         mesh = solver.mesh
         shown = solver.state.radiosity  # the ambient term is negligible once converged
         errors = element_errors(mesh, shown)
-        estimate = estimated_relative_error(mesh, shown, errors)
-        reports.append(RoundReport(index, mesh.num_elements, 0, estimate, solver.state.shots))
+        estimated = estimated_relative_error(mesh, shown, errors) if estimate is None else estimate()
+        reports.append(RoundReport(index, mesh.num_elements, 0, estimated, solver.state.shots))
         room = (max_elements - mesh.num_elements) // (refiner.children - 1)
         count = min(room, int(ROUND_SHARE * mesh.num_elements))
-        if index == rounds or estimate <= tolerance or count <= 0:
+        if index == rounds or estimated <= tolerance or count <= 0:
             break
         splittable = refiner.splittable(mesh, torch.empty(0, dtype=torch.int64, device=solver.device))
         chosen = select_by_error(errors, mesh.areas, splittable, count)

@@ -1,0 +1,89 @@
+"""The solution's own error estimate by final gathers (``hemirad.evaluation.gathered_error``)
+against the error measured from a closed form: a floor under a square lamp, nothing else
+reflecting, so the floor's exact radiosity at any point is rho E F(point -> lamp) with F
+Lambert's point-to-polygon form factor."""
+import math
+
+import pytest
+import torch
+import yaml
+
+import hemirad
+from hemirad.evaluation.gathered_error import gathered_error, sample_points
+from hemirad.geometry.analytic import point_to_polygon
+from hemirad.scene.loader import parse_scene
+
+LAMP = torch.tensor([[-0.2, 1.0, -0.2], [0.2, 1.0, -0.2], [0.2, 1.0, 0.2], [-0.2, 1.0, 0.2]], dtype=torch.float64)
+RHO, E = 0.5, 10.0
+
+
+def lamp_over_floor(element_size: float, samples: int = 600, extra: str = ""):
+    text = f"""
+materials:
+  lamp: {{reflectance: 0.0, emission: {E}}}
+  floor: {{reflectance: {RHO}}}
+objects:
+  - {{type: quad, name: lamp, material: lamp, element_size: 0.2, corners: {LAMP.tolist()}}}
+  - {{type: quad, name: floor, material: floor, element_size: {element_size},
+     corners: [[-1, 0, -1], [-1, 0, 1], [1, 0, 1], [1, 0, -1]]}}
+{extra}
+camera: {{position: [0, 2, -2], look_at: [0, 0, 0], width: 16, height: 12, supersample: 1}}
+solver: {{resolution: 64, unshot_fraction: 1.0e-6, error_samples: {samples}}}
+"""
+    return parse_scene(yaml.safe_load(text))
+
+
+def exact(points: torch.Tensor) -> torch.Tensor:
+    """(N,) the floor's radiosity at ``points`` (N, 3) on it."""
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    return torch.stack([RHO * E * point_to_polygon(p, up, LAMP) for p in points])
+
+
+def measured_error(result, points: torch.Tensor, element: torch.Tensor, barycentric: torch.Tensor) -> float:
+    """The displayed floor's relative RMS error against the closed form at ``points``."""
+    vertex = result.vertex_radiosity()[:, 0]  # grey light
+    shown = (vertex[result.mesh.triangles.index_select(0, element)] * barycentric).sum(1)
+    truth = exact(points)
+    return math.sqrt(float(((shown - truth) ** 2).sum() / (truth ** 2).sum()))
+
+
+@pytest.mark.parametrize("element_size", [0.5, 0.25])
+def test_the_estimate_reads_the_error_a_closed_form_measures(element_size):
+    """At the estimate's own points, within 5% of the error measured from the closed form
+    (the gathers' hemicubes are what differ); over an independent, denser sampling within
+    10% (the estimate's 600 samples, stratified by area, against 3,000). The interpolation
+    estimate the elements are ranked by reads 4-14x under it here."""
+    result = hemirad.solve(lamp_over_floor(element_size))
+    mesh = result.mesh
+    estimate = result.stats["estimated_error"]
+    floor = mesh.surface == mesh.surface_names.index("floor")
+    element, barycentric, points = sample_points(mesh, floor, 600)
+    at_its_points = measured_error(result, points, element, barycentric)
+    assert estimate == pytest.approx(at_its_points, rel=0.05)
+    element, barycentric, points = sample_points(mesh, floor, 3000, seed=7)
+    assert estimate == pytest.approx(measured_error(result, points, element, barycentric), rel=0.10)
+    assert result.stats["error_samples"] == 600 and 0 < result.stats["estimated_error_standard_error"] < estimate
+
+
+def test_a_finer_mesh_is_estimated_better_and_the_same_run_the_same():
+    coarse, fine = (hemirad.solve(lamp_over_floor(size, 300)) for size in (0.5, 0.125))
+    assert fine.stats["estimated_error"] < 0.5 * coarse.stats["estimated_error"]
+    again = gathered_error(fine.mesh, fine.display_radiosity, fine.emission, fine.reflectance, 300, 64)
+    assert again.relative_rms == fine.stats["estimated_error"]
+
+
+def test_no_samples_no_estimate():
+    result = hemirad.solve(lamp_over_floor(0.5, 0))
+    assert result.stats["estimated_error"] is None and result.stats["error_samples"] == 0
+    assert result.stats["interpolation_error"] > 0
+
+
+def test_points_inside_a_solid_are_left_out():
+    """A closed crate sunk through the floor (intersections left uncut): the floor inside it
+    sees only the crate's back faces, and no view shows it. Its samples (1 m^2 of the 7.6 m^2
+    sampled: the floor's 4 and the crate's 3.6) are dropped, and only they: the crate's
+    faces below the floor see its underside (a back face) over less than half their view."""
+    crate = ("  - {type: box, name: crate, material: floor, element_size: 0.25, "
+             "min: [-0.5, -0.1, -0.5], max: [0.5, 0.3, 0.5]}\nmeshing: {intersections: false}")
+    result = hemirad.solve(lamp_over_floor(0.25, 760, crate))
+    assert result.stats["error_samples"] == pytest.approx(660, abs=8)
