@@ -41,7 +41,7 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
     mesh = build_mesh(scene) if mesh is None else mesh
     reflectance = scene.reflectance_table()[mesh.material]
     emission = emission_table(scene, mesh)[mesh.material]  # a material's flux spread over its area
-    per_shot = scene.refine.enabled and not scene.refine.by_answer  # the answer's rounds run in pipeline.solve
+    per_shot = scene.refine.enabled and not scene.refines_by_answer  # the answer's rounds run in pipeline.solve
     refiner = Refiner(scene.refine, emission, relabel=relabel, bound=bound) if per_shot else None
     device = torch.device(select_device(scene.solver.device) if device is None else device)
     options = scene.solver

@@ -92,7 +92,7 @@ def fingerprint(scene: Scene) -> dict[str, object]:
         "materials": _sha256(json.dumps(materials, sort_keys=True).encode()),
         "objects": _objects_digest(scene),
         "solver.resolution": scene.solver.resolution,
-        "meshing.contacts": scene.refine.resolved_contacts(scene.meshing.contacts),
+        "meshing.contacts": scene.meshes_contacts,
         "meshing.intersections": scene.meshing.intersections,
         **{f"solver.{k}": getattr(scene.solver, k)
            for k in ("patch_size", "overshoot", "sweeps", "shooter_split", "small_receivers")},

@@ -13,7 +13,7 @@ from hemirad.core.device import DEVICES, DEVICE_NAMES, is_device_name
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.patterns import PATTERN_CHOICES, describe_patterns
 from hemirad.scene.loader import MAX_SURFACE_NAME, MAX_TRIANGLES, bundled_scenes, load_scene
-from hemirad.scene.model import CRITERION_NAMES, SMALL_RECEIVER_CHOICES, RefineOptions
+from hemirad.scene.model import CRITERION_NAMES, SMALL_RECEIVER_CHOICES
 from hemirad.scene.sensorfile import read_sensor_file
 
 
@@ -141,7 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     refine = parser.add_argument_group("adaptive meshing (override the scene's refine block)")
     refine.add_argument("--refine", choices=PATTERN_CHOICES, help=f"split pattern: {describe_patterns()}")
     refine.add_argument("--criterion", choices=CRITERION_NAMES,
-                        help=f"what decides a split (default {RefineOptions.criterion}, the paper's eq. 7)")
+                        help="what decides a split: answer, between converged solves where the solution's "
+                             "estimated error is largest; a per-shot criterion (gradient: the paper's eq. 7); "
+                             "auto (the default): answer with patches, gradient when every element shoots")
     refine.add_argument("--threshold", type=_positive_float,
                         help="split when the criterion's radiosity variation (luminance) exceeds this")
     scale = refine.add_mutually_exclusive_group()

@@ -289,7 +289,7 @@ def _restore(scene: Scene, solver: ProgressiveSolver, state: dict, run: dict, pa
             raise ValueError(f"the scene meshes to {initial_elements} elements, the checkpoint's run "
                              f"started with {run['initial_elements']}")
         # after a round's split the patches were regrouped on the refined mesh (``refine_by_answer``)
-        split = scene.refine.by_answer and any(int(r["split"]) for r in run.get("answer", {}).get("rounds", []))
+        split = scene.refines_by_answer and any(int(r["split"]) for r in run.get("answer", {}).get("rounds", []))
         solver.load_state_dict(state, (lambda: refined_patches(scene, solver, state["patches"])) if split else None)
         return {"mesh": float(run["seconds"]["mesh"]), "solve": float(run["seconds"]["solve"])}
     except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as exc:
@@ -524,7 +524,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
         if checkpoint is not None:
             saver = _CheckpointWriter(checkpoint, fingerprint, checkpoint_every, solver, mesh.num_elements, elapsed,
                                       None if saved is None else solver.state.shots)
-        if scene.refine.by_answer:
+        if scene.refines_by_answer:
             rounds, answer_refiner, estimated = _refine_by_answer(scene, solver, progress, saver,
                                                                   None if saved is None else saved[1], checkpoint)
             state = solver.state
@@ -557,7 +557,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
 def _check_answer_refinement(scene: Scene) -> None:
     """Refinement judged on the answer shoots by patches (each refined mesh is solved afresh by
     the initial mesh's patches)."""
-    if not scene.refine.by_answer:
+    if not scene.refines_by_answer:
         return
     if scene.solver.patch_size in (None, "none"):
         raise _key_error(scene, "refine.criterion", "a per-shot criterion when every element shoots "
@@ -573,7 +573,7 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
     the refiner that split, and the last round's estimate (``GatheredError`` or None) with
     the (shots, elements) it was made at."""
     options, refine = scene.solver, scene.refine
-    refiner = Refiner(refine, solver.emission)
+    refiner = Refiner(dataclasses.replace(refine, criterion=ANSWER), solver.emission)
     reports: list[RoundReport] = []
     if run is not None:
         try:
@@ -677,10 +677,10 @@ def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_element
         "hemicubes_rendered": solver.renderer.renders,
         "unshot_fraction": solver.unshot_fraction,
         "hemicube_resolution": scene.solver.resolution,
-        "refine": {"pattern": scene.refine.pattern, "criterion": scene.refine.criterion,
+        "refine": {"pattern": scene.refine.pattern, "criterion": scene.refine_criterion,
                    "threshold": scene.refine.threshold, "relative": scene.refine.relative,
                    "absolute_threshold": refiner.threshold if refiner else None,
-                   "splits": refiner.splits if refiner else 0, "tolerance": scene.refine.tolerance if scene.refine.by_answer else None,
+                   "splits": refiner.splits if refiner else 0, "tolerance": scene.refine.tolerance if scene.refines_by_answer else None,
                    "rounds": [dataclasses.asdict(r) for r in rounds] if rounds is not None else None},
         "largest_angle_degrees": angle_quality(final),
         "emitted_power": solver.emitted_power.tolist(),

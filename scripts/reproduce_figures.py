@@ -50,6 +50,7 @@ def configure(name: str, pattern: str, args) -> hemirad.scene.Scene:
     scene.solver.max_shots, scene.solver.unshot_fraction = args.shots, 0.0
     scene.solver.resolution = args.resolution
     scene.refine.pattern, scene.refine.threshold, scene.refine.relative = pattern, args.threshold, True
+    scene.refine.criterion = "gradient"  # the paper's eq. 7, per shot
     scene.refine.max_depth, scene.refine.max_elements = args.max_depth, args.max_elements
     if args.quick:  # smaller pictures (and, from main, fewer shots, a smaller hemicube, shallower refinement)
         scene.camera.width, scene.camera.height = scene.camera.width // 3, scene.camera.height // 3

@@ -66,7 +66,7 @@ def refined_solve(scene_name: str, shots: int, resolution: int = 64, **solver_op
     finished (closed) ProgressiveSolver, with ``solver_options`` (cull, relabel, bound)
     passed on to ``make_solver``."""
     scene = hemirad.load_scene(scene_name)
-    scene.refine.pattern = "pattern2"
+    scene.refine.pattern, scene.refine.criterion = "pattern2", "gradient"
     scene.solver.resolution = resolution
     solver = make_solver(scene, **solver_options)
     try:

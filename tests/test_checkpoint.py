@@ -18,7 +18,7 @@ from hemirad.transport import solver as solver_module
 from hemirad.transport.solver import ProgressiveSolver
 
 SMALL_ROOM = Path(__file__).parent / "data" / "small_room.yaml"
-REFINE = {"pattern": "pattern2", "threshold": 1e-3, "max_depth": 2}
+REFINE = {"pattern": "pattern2", "criterion": "gradient", "threshold": 1e-3, "max_depth": 2}
 
 
 def scene(shots: int = 24, refine: bool = False, **solver):
@@ -244,7 +244,7 @@ def interrupt_at(monkeypatch, k: int):
 
 def test_ctrl_c_keeps_the_checkpoint_and_says_how_to_resume(tmp_path, monkeypatch, capsys):
     argv = [str(SMALL_ROOM), "-o", str(tmp_path / "out"), "-q", "--shots", "12", "--refine", "pattern2",
-            "--threshold", "1e-3", "--max-depth", "2", "--checkpoint-every", "5"]
+            "--criterion", "gradient", "--threshold", "1e-3", "--max-depth", "2", "--checkpoint-every", "5"]
     with monkeypatch.context() as m:
         interrupt_at(m, 8)
         assert main(argv) == 130

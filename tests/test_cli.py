@@ -113,7 +113,7 @@ def test_bad_option_gives_exit_code_2(capsys):
 
 def test_cli_refines_and_writes_the_mesh_view(tmp_path, capsys):
     assert main([str(DATA / "small_room.yaml"), "-o", str(tmp_path), "-q", "--shots", "10",
-                 "--refine", "pattern2", "--threshold", "1e-3", "--max-depth", "2"]) == 0
+                 "--refine", "pattern2", "--criterion", "gradient", "--threshold", "1e-3", "--max-depth", "2"]) == 0
     stats = json.loads((tmp_path / "stats.json").read_text())
     assert stats["refine"]["pattern"] == "pattern2" and stats["refine"]["splits"] > 0
     assert len(stats["elements_per_level"]) == 3 and sum(stats["elements_per_level"]) == stats["elements"]

@@ -277,4 +277,5 @@ def test_the_command_line_offers_the_same_vocabularies():
 def test_the_criteria_registry_defines_exactly_the_named_criteria():
     from hemirad.adaptive.criteria import CRITERIA
 
-    assert tuple(CRITERIA) + ("answer",) == CRITERION_NAMES  # answer: judged between solves, not per shot
+    # answer: judged between solves, not per shot; auto: answer or the paper's, by the scene
+    assert tuple(CRITERIA) + ("answer", "auto") == CRITERION_NAMES

@@ -23,7 +23,8 @@ def written(tmp_path_factory):
     """A small solve with refinement (so the mesh has T-vertices), written by the Python API."""
     scene = hemirad.load_scene(SMALL_ROOM)
     scene.solver = dataclasses.replace(scene.solver, max_shots=8)
-    scene.refine = dataclasses.replace(scene.refine, pattern="pattern2", threshold=1e-3, max_depth=1)
+    scene.refine = dataclasses.replace(scene.refine, pattern="pattern2", criterion="gradient",
+                                        threshold=1e-3, max_depth=1)
     result = hemirad.solve(scene)
     paths = result.write(tmp_path_factory.mktemp("out"))
     return result, paths

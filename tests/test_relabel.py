@@ -21,7 +21,7 @@ def test_descendants_group_new_elements_by_parent():
 
 def test_relabelled_atlas_is_the_new_render_but_for_a_few_edge_pixels():
     scene = hemirad.load_scene("floating")
-    scene.refine.pattern = "pattern2"
+    scene.refine.pattern, scene.refine.criterion = "pattern2", "gradient"
     mesh = build_mesh(scene)
     emission = scene.emission_table()[mesh.material]
     lamp = int(torch.nonzero(emission.sum(1) > 0)[0])

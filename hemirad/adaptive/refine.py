@@ -10,7 +10,7 @@ from hemirad.core.fastops import flatnonzero
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patterns import CHILDREN
 from hemirad.geometry.split import SplitRounds
-from hemirad.scene.model import RefineOptions
+from hemirad.scene.model import AUTO_CRITERION, PAPER_CRITERION, RefineOptions
 from hemirad.transport.view import HemicubeView
 
 
@@ -35,8 +35,9 @@ class Refiner:
             raise ValueError(f"unknown split pattern {options.pattern!r}")
         self.options = options
         # None for refinement judged on the answer (``answer.py``), which uses this object's
-        # split pattern, grading and limits only
-        self.criterion = CRITERIA.get(options.criterion)
+        # split pattern, grading and limits only; ``auto`` here, without a scene to say
+        # whether patches shoot, is the paper's criterion (``Scene.refine_criterion``)
+        self.criterion = CRITERIA.get(PAPER_CRITERION if options.criterion == AUTO_CRITERION else options.criterion)
         self.threshold = options.threshold
         if options.relative and self.criterion is not None and self.criterion.radiosity_units:
             self.threshold *= float(luminance(emission).max())

@@ -348,7 +348,7 @@ def build_mesh(scene: Scene) -> Mesh:
         surfaces.extend(builders[type(obj)](obj, label, scene))
     if scene.meshing.intersections:
         surfaces = _cut_at_intersections(surfaces)
-    if scene.refine.resolved_contacts(scene.meshing.contacts):
+    if scene.meshes_contacts:
         surfaces = _conform_to_contacts(surfaces)
 
     vertices, triangles, surface, material = [], [], [], []

@@ -20,10 +20,15 @@ from hemirad.geometry.patterns import NO_REFINEMENT
 #: ``hemirad.adaptive.criteria.CRITERIA``, whose keys are checked against these (the loader, a
 #: layer below, reads the names from here).
 SHOT_CRITERION_NAMES = ("gradient", "receiver", "partial_visibility", "neighbor_difference", "uniform")
-#: What a scene's ``refine.criterion`` (and ``--criterion``) may be: a per-shot criterion, or
-#: ``answer``: refine between converged solves where the solution is worst (``adaptive.answer``).
+#: What a scene's ``refine.criterion`` (and ``--criterion``) may be: a per-shot criterion,
+#: ``answer``: refine between converged solves where the solution is worst (``adaptive.answer``),
+#: or ``auto``: ``answer`` where patches shoot, the paper's ``gradient`` where every element
+#: does (``Scene.refine_criterion``).
 ANSWER = "answer"
-CRITERION_NAMES = SHOT_CRITERION_NAMES + (ANSWER,)
+AUTO_CRITERION = "auto"
+CRITERION_NAMES = SHOT_CRITERION_NAMES + (ANSWER, AUTO_CRITERION)
+#: The criterion ``auto`` means where every element shoots (and for a refiner without a scene).
+PAPER_CRITERION = "gradient"
 
 
 #: The emission a material may have, besides 0: radiosity (up to emission / (1 - reflectance),
@@ -181,7 +186,10 @@ class RefineOptions:
     """Adaptive meshing during the solve (docs/DESIGN.md §2, §3)."""
 
     pattern: str = NO_REFINEMENT  # or a split pattern: hemirad.geometry.patterns.PATTERN_CHOICES
-    criterion: str = "gradient"  # one of CRITERION_NAMES
+    # one of CRITERION_NAMES; the default, auto, is answer with patches: per element it beat
+    # uniform meshes on every bundled scene, which no per-shot criterion did
+    # (figures/accuracy_converged.md, figures/accuracy.md)
+    criterion: str = AUTO_CRITERION
     threshold: float = 3e-4  # luminance of radiosity per shot (a length for the uniform criterion)
     relative: bool = True  # threshold as a fraction of the brightest emitter's radiosity
     max_depth: int = 4  # splits of one initial element, at most
@@ -201,16 +209,6 @@ class RefineOptions:
     def enabled(self) -> bool:
         return self.pattern != NO_REFINEMENT
 
-    def resolved_contacts(self, contacts: bool | str) -> bool:
-        """``meshing.contacts`` made definite: ``auto`` is on with refinement judged on the
-        answer. Measured on the Cornell box against its reference (relMSE, converged): the
-        answer's first round 0.00059 with contacts against 0.00084 without, its third 0.00021
-        against 0.00029, with 22 of the 26 floor points 1 cm outside the blocks within 5%
-        (12 without); uniform meshes gain too (2,660 elements 0.00190 against 0.00253; about
-        10,000: 0.00035 against 0.00055), but at their sizes the floor beside the blocks is
-        not resolved, and the bundled scenes keep the meshes they were measured with."""
-        return self.by_answer if contacts == "auto" else bool(contacts)
-
     def resolved_small_receivers(self, small_receivers: str) -> str:
         """``solver.small_receivers`` made definite: ``auto`` is ``closed_form`` with refinement
         (elements under a pixel's footprint are what it mends: the refined penumbrae's grain)
@@ -220,10 +218,13 @@ class RefineOptions:
             return small_receivers
         return "closed_form" if self.enabled else "pixels"
 
-    @property
-    def by_answer(self) -> bool:
-        """Refinement between converged solves, judged on the solution (``adaptive.answer``)."""
-        return self.enabled and self.criterion == ANSWER
+    def resolved_criterion(self, patch_size) -> str:
+        """``criterion`` made definite for a solver of ``patch_size``: ``auto`` is ``answer``
+        where patches shoot and the paper's ``gradient`` where every element does (the
+        answer's rounds solve each refined mesh by patches)."""
+        if self.criterion != AUTO_CRITERION:
+            return self.criterion
+        return PAPER_CRITERION if patch_size in (None, "none") else ANSWER
 
 
 @dataclass
@@ -263,7 +264,7 @@ class MeshingOptions:
     # Mesh each planar surface that others touch (a block on a floor) conforming to where
     # they touch, the covered part dropped (``hemirad.scene.contacts``). ``auto``: with
     # refinement judged on the answer, whose elements beside the contacts become small
-    # enough for it (``RefineOptions.resolved_contacts``; README, Contact meshing).
+    # enough for it (``Scene.meshes_contacts``; README, Contact meshing).
     # False: every surface is meshed on its own, as the paper's figures were.
     contacts: bool | str = "auto"
     # Cut surfaces where others pass through them (a lamp's barrel through its globe) and
@@ -293,6 +294,28 @@ class Scene:
     # falling on them, one falsecolour_<name>.png each.
     falsecolour: list[str] = field(default_factory=list)
     meshing: MeshingOptions = field(default_factory=MeshingOptions)
+
+    @property
+    def refine_criterion(self) -> str:
+        """The refinement criterion this scene runs (``RefineOptions.resolved_criterion``)."""
+        return self.refine.resolved_criterion(self.solver.patch_size)
+
+    @property
+    def refines_by_answer(self) -> bool:
+        """Refinement between converged solves, judged on the solution (``adaptive.answer``)."""
+        return self.refine.enabled and self.refine_criterion == ANSWER
+
+    @property
+    def meshes_contacts(self) -> bool:
+        """``meshing.contacts`` made definite: ``auto`` is on with refinement judged on the
+        answer. Measured on the Cornell box against its reference (relMSE, converged): the
+        answer's first round 0.00059 with contacts against 0.00084 without, its third 0.00021
+        against 0.00029, with 22 of the 26 floor points 1 cm outside the blocks within 5%
+        (12 without); uniform meshes gain too (2,660 elements 0.00190 against 0.00253; about
+        10,000: 0.00035 against 0.00055), but at their sizes the floor beside the blocks is
+        not resolved, and the bundled scenes keep the meshes they were measured with."""
+        contacts = self.meshing.contacts
+        return self.refines_by_answer if contacts == "auto" else bool(contacts)
 
     def with_element_sizes_scaled(self, factor: float) -> "Scene":
         """A copy of the scene with every element size (room faces' too) times ``factor``."""
