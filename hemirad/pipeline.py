@@ -544,7 +544,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     estimating = time.perf_counter()
     if estimated is None or estimated[0] != (state.shots, final.num_elements):  # not the last round's
         estimated = (None, result.estimate_error())
-    stats.update(_estimate_stats(estimated[1], estimated_relative_error(final, result.radiosity)))
+    stats.update(_estimate_stats(estimated[1], estimated_relative_error(final, result.radiosity, emission=result.emission)))
     stats["seconds"]["estimate"] = time.perf_counter() - estimating
     if scene.sensors or scene.grids:
         measured = time.perf_counter()
@@ -592,7 +592,7 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
         result = Result.of_solver(scene, solver)
         gathered = result.estimate_error()
         last[0] = ((solver.state.shots, solver.mesh.num_elements), gathered)
-        return gathered.relative_rms if gathered else estimated_relative_error(result.mesh, result.radiosity)
+        return gathered.relative_rms if gathered else estimated_relative_error(result.mesh, result.radiosity, emission=result.emission)
 
     shot_done = progress
     if saver is not None:

@@ -239,7 +239,7 @@ def _scored(name, label, value, scene, solver, seconds, comparison) -> dict:
             "shots": s.shots, "unshot_fraction": solver.unshot_fraction, "seconds": seconds,
             "estimated_error": gathered.relative_rms, "estimated_standard_error": gathered.standard_error,
             "estimate_seconds": time.perf_counter() - start,
-            "interpolation_error": estimated_relative_error(result.mesh, result.radiosity),
+            "interpolation_error": estimated_relative_error(result.mesh, result.radiosity, emission=result.emission),
             **comparison.scores(result)}
 
 

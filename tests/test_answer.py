@@ -153,7 +153,7 @@ def test_a_run_refines_by_the_answer_and_reports_its_rounds_and_estimate(tmp_pat
 def test_every_run_reports_its_estimated_error():
     result = hemirad.solve(_small_cornell(0.05))
     mesh = result.mesh
-    assert result.stats["interpolation_error"] == estimated_relative_error(mesh, result.radiosity)
+    assert result.stats["interpolation_error"] == estimated_relative_error(mesh, result.radiosity, emission=result.emission)
     assert result.stats["estimated_error"] == result.estimate_error().relative_rms  # the same points: deterministic
     assert result.stats["refine"]["rounds"] is None
 
