@@ -27,12 +27,12 @@ import torch
 
 from hemirad import checkpoint as checkpoints
 from hemirad.adaptive.answer import RoundReport, estimated_relative_error, refine_by_answer
-from hemirad.evaluation.gathered_error import GatheredError, gathered_error
 from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver, refined_patches
 from hemirad.core.atomic import remove_stale_temporaries
 from hemirad.core.device import select_device
 from hemirad.core.errors import HemiradInputError, SceneError, bounded_repr
+from hemirad.evaluation.gathered_error import GatheredError, gathered_error
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import angle_quality
 from hemirad.lighting import photometry, survey
@@ -102,11 +102,11 @@ class Result:
     grids: dict[str, survey.GridReadings] = field(default_factory=dict)
 
     @classmethod
-    def of_solver(cls, scene: Scene, solver: ProgressiveSolver, stats: dict | None = None) -> "Result":
-        """The solver's current solution (on the CPU)."""
+    def of_solver(cls, scene: Scene, solver: ProgressiveSolver) -> "Result":
+        """The solver's current solution (on the CPU), without statistics."""
         s = solver.state
         return cls(scene, solver.mesh.to("cpu"), s.radiosity.cpu(), s.unshot.cpu(), solver.reflectance.cpu(),
-                   solver.emission.cpu(), {} if stats is None else stats)
+                   solver.emission.cpu())
 
     def estimate_error(self) -> GatheredError | None:
         """The displayed solution's relative RMS error, estimated by final gathers at the
@@ -544,7 +544,8 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     estimating = time.perf_counter()
     if estimated is None or estimated[0] != (state.shots, final.num_elements):  # not the last round's
         estimated = (None, result.estimate_error())
-    stats.update(_estimate_stats(estimated[1], estimated_relative_error(final, result.radiosity, emission=result.emission)))
+    interpolation = estimated_relative_error(final, result.radiosity, emission=result.emission)
+    stats.update(_estimate_stats(estimated[1], interpolation))
     stats["seconds"]["estimate"] = time.perf_counter() - estimating
     if scene.sensors or scene.grids:
         measured = time.perf_counter()
@@ -592,7 +593,9 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
         result = Result.of_solver(scene, solver)
         gathered = result.estimate_error()
         last[0] = ((solver.state.shots, solver.mesh.num_elements), gathered)
-        return gathered.relative_rms if gathered else estimated_relative_error(result.mesh, result.radiosity, emission=result.emission)
+        if gathered is None:
+            return estimated_relative_error(result.mesh, result.radiosity, emission=result.emission)
+        return gathered.relative_rms
 
     shot_done = progress
     if saver is not None:

@@ -9,10 +9,10 @@ so B(x) = E_k + rho_k sum_j F_xj B_j (``lighting.sensors``). The gather resolves
 mesh cannot: a shadow edge or a penumbra inside an element, light falling off over a large
 wall element, a contact line; and it does not trust the element's own value. The
 difference of the two, over points sampled uniformly by area, estimates the picture's
-relative RMS error; measured against path-traced references (figures/accuracy_converged.md)
-it reads about 1-2x the error there, where the interpolation estimate of ``answer.py`` (how
-far the shading lies from a linear fit) read 2-9x under it. What the gather cannot see is
-the error of the radiosity it gathers; on converged solutions that is the smaller part.
+relative RMS error over all surfaces; measured against path-traced references, which see
+what their cameras see, it reads about 1-2x the error there (figures/accuracy_converged.md),
+and within 5% of the error a closed form measures (tests/test_gathered_error.py). What the
+gather cannot see is the error of the radiosity it gathers.
 
 Points that see back faces over most of their hemisphere lie inside a solid or under an
 object standing on them (a block's footprint, unmeshed contacts): no view shows them, and
@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import torch
 
 from hemirad.core.colour import luminance
-from hemirad.lighting.sensors import final_gather, sensor_renderer
 from hemirad.geometry.mesh import Mesh
+from hemirad.lighting.sensors import final_gather, sensor_renderer
 from hemirad.output import display
 
 #: The share of a sample's (cosine-weighted) hemisphere in which it sees back faces above
