@@ -32,7 +32,7 @@ from hemirad.assembly import make_solver, refined_patches
 from hemirad.core.atomic import remove_stale_temporaries
 from hemirad.core.device import select_device
 from hemirad.core.errors import HemiradInputError, SceneError, bounded_repr
-from hemirad.evaluation.gathered_error import GatheredError, gathered_error
+from hemirad.evaluation.gathered_error import GatheredError, gathered_error, image_gathered_error
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import angle_quality
 from hemirad.lighting import photometry, survey
@@ -114,6 +114,16 @@ class Result:
         o = self.scene.solver
         return gathered_error(self.mesh, self.display_radiosity, self.emission, self.reflectance,
                               o.error_samples, o.resolution)
+
+    def estimate_image_error(self, camera: Camera | None = None, samples: int | None = None) -> GatheredError | None:
+        """The relative RMS error of the picture from ``camera`` (default: the scene's), as a
+        per-pixel comparison with a rendered reference weighs it, estimated by final gathers
+        at the points ``samples`` of its pixels see (default ``solver.error_samples``;
+        ``evaluation.gathered_error.image_gathered_error``)."""
+        o = self.scene.solver
+        return image_gathered_error(self.mesh, self.display_radiosity, self.emission, self.reflectance,
+                                    self.scene.camera if camera is None else camera,
+                                    o.error_samples if samples is None else samples, o.resolution)
 
     @property
     def ambient(self) -> torch.Tensor:

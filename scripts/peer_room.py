@@ -2,7 +2,7 @@
 and error of a converged solve. For reading, never for asserting.
 
     python scripts/peer_room.py ROOM_DIR [--scene scene.yaml] [--points POINTS.npz]
-        [--unshot-fraction 1e-3] [--patch-size auto] [--resolution N] [--profile]
+        [--unshot-fraction 1e-3] [--patch-size auto] [--resolution N] [--rounds N] [--profile]
 
 ROOM_DIR holds a scene in hemirad's format and an ``.npz`` of surface points (``points``,
 ``normals`` (N, 3), path-traced radiosity ``B`` (N, 3) and its standard error ``se``), such as
@@ -18,7 +18,6 @@ import argparse
 import cProfile
 import pstats
 import resource
-import time
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +26,6 @@ import torch
 RSS_AFTER_IMPORT_MB = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 import hemirad  # noqa: E402  (imported after the measurement above)
-from hemirad.assembly import make_solver  # noqa: E402
 from hemirad.evaluation.metrics import luminance  # noqa: E402
 from hemirad.evaluation.surface_points import elements_at  # noqa: E402
 
@@ -41,37 +39,36 @@ def measure(scene_path: Path, points_path: Path, args) -> dict:
             "auto" if args.patch_size == "auto" else float(args.patch_size))
     if args.resolution:
         options.resolution = args.resolution
+    if args.rounds:  # refinement judged on the answer (the default criterion with patches)
+        scene.refine.pattern, scene.refine.rounds, scene.refine.tolerance = "pattern2", args.rounds, 0.0
     torch.set_num_threads(1)
-    start = time.perf_counter()
-    solver = make_solver(scene)
     profile = cProfile.Profile() if args.profile else None
-    try:
-        if profile:
-            profile.enable()
-        state = solver.run(options.max_shots, options.unshot_fraction)
-        if profile:
-            profile.disable()
-    finally:
-        solver.close()
-    seconds = time.perf_counter() - start
+    if profile:
+        profile.enable()
+    result = hemirad.solve(scene)
+    if profile:
+        profile.disable()
+    stats = result.stats
+    seconds = stats["seconds"]["mesh"] + stats["seconds"]["solve"]  # the error estimate timed apart
     data = np.load(points_path)
     points = torch.as_tensor(data["points"], dtype=torch.float64)
     normals = torch.as_tensor(data["normals"], dtype=torch.float64)
-    where = elements_at(solver.mesh.to("cpu"), points, normals)
+    where = elements_at(result.mesh, points, normals)
     found = (where >= 0).numpy()
-    ours = luminance(state.radiosity.cpu().numpy()[where.numpy()[found]])
+    ours = luminance(result.radiosity.numpy()[where.numpy()[found]])
     truth = luminance(data["B"][found])
     error = ours / truth - 1
-    emitted = float((solver.emission * solver.areas[:, None]).sum())
+    emitted = float(sum(stats["emitted_power"]))
     report = {
-        "seconds": seconds, "shots": state.shots, "hemicubes": solver.renderer.renders,
-        "patches": solver.patches.tree.num_patches if solver.patches is not None else None,
-        "elements": solver.mesh.num_elements, "unshot": solver.unshot_fraction,
+        "seconds": seconds, "shots": stats["shots"], "hemicubes": stats["hemicubes_rendered"],
+        "patches": stats["patches"], "elements": stats["elements"], "unshot": stats["unshot_fraction"],
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "import_mb": RSS_AFTER_IMPORT_MB, "escaped": float(state.escaped.sum()) / emitted,
+        "import_mb": RSS_AFTER_IMPORT_MB, "escaped": float(sum(stats["escaped_power"])) / emitted,
         "points": int(found.sum()), "of": len(found),
         "median": float(np.median(np.abs(error))), "p90": float(np.percentile(np.abs(error), 90)),
         "max": float(np.abs(error).max()), "bias": float(error.mean()),
+        "estimated": stats["estimated_error"], "estimate_seconds": stats["seconds"]["estimate"],
+        "rms": float(np.sqrt((((ours - truth) ** 2).sum()) / (truth ** 2).sum())),
     }
     if profile:
         pstats.Stats(profile).sort_stats(args.sort).print_stats(40)
@@ -86,6 +83,8 @@ def main() -> None:
     parser.add_argument("--unshot-fraction", type=float, default=1e-3)
     parser.add_argument("--patch-size", default=None, help="auto, none or a side length (default: the scene's)")
     parser.add_argument("--resolution", type=int, default=None)
+    parser.add_argument("--rounds", type=int, default=0,
+                        help="refine by the answer this many rounds (pattern 2; default 0: the scene's mesh)")
     parser.add_argument("--profile", action="store_true", help="print where the solve's time goes")
     parser.add_argument("--sort", default="tottime", help="the profile's order (pstats keys: tottime, cumulative, ...)")
     args = parser.parse_args()
@@ -98,7 +97,9 @@ def main() -> None:
           f"({r['import_mb']:.0f} MB of it importing torch and numpy)")
     print(f"escaped through back faces: {100 * r['escaped']:.2f}% of the emitted power")
     print(f"luminance error at {r['points']} of {r['of']} points: median {100 * r['median']:.1f}%, "
-          f"90th percentile {100 * r['p90']:.1f}%, largest {100 * r['max']:.1f}%, mean {100 * r['bias']:+.1f}%")
+          f"90th percentile {100 * r['p90']:.1f}%, largest {100 * r['max']:.1f}%, mean {100 * r['bias']:+.1f}%; "
+          f"relative RMS {100 * r['rms']:.1f}% (the run's own estimate over all its surfaces: "
+          f"{100 * r['estimated']:.1f}%, {r['estimate_seconds']:.1f} s)")
 
 
 if __name__ == "__main__":

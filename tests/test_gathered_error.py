@@ -9,7 +9,7 @@ import torch
 import yaml
 
 import hemirad
-from hemirad.evaluation.gathered_error import gathered_error, sample_points
+from hemirad.evaluation.gathered_error import _barycentric, gathered_error, pixel_points, sample_points
 from hemirad.geometry.analytic import point_to_polygon
 from hemirad.scene.loader import parse_scene
 
@@ -27,7 +27,7 @@ objects:
   - {{type: quad, name: floor, material: floor, element_size: {element_size},
      corners: [[-1, 0, -1], [-1, 0, 1], [1, 0, 1], [1, 0, -1]]}}
 {extra}
-camera: {{position: [0, 2, -2], look_at: [0, 0, 0], width: 16, height: 12, supersample: 1}}
+camera: {{position: [0, 2, -2], look_at: [0, 0, 0], width: 64, height: 48, supersample: 1}}
 solver: {{resolution: 64, unshot_fraction: 1.0e-6, error_samples: {samples}}}
 """
     return parse_scene(yaml.safe_load(text))
@@ -88,3 +88,38 @@ def test_points_inside_a_solid_are_left_out():
              "min: [-0.5, -0.1, -0.5], max: [0.5, 0.3, 0.5]}\nmeshing: {intersections: false}")
     result = hemirad.solve(lamp_over_floor(0.25, 760, crate))
     assert result.stats["error_samples"] == pytest.approx(660, abs=8)
+
+
+def test_each_pixel_sees_a_point_of_the_element_drawn_there():
+    result = hemirad.solve(lamp_over_floor(0.25, 0))
+    mesh, camera = result.mesh, result.scene.camera
+    element, points = pixel_points(mesh, camera)
+    seen = element >= 0
+    assert element.shape == (camera.width * camera.height,) and int(seen.sum()) > 0.5 * len(element)
+    corners = mesh.corners[element[seen]]
+    a, b, c = corners.unbind(1)
+    # unclamped barycentric coordinates: inside the triangle, up to the render's float32
+    area = torch.linalg.cross(b - a, c - a).norm(dim=1)
+    parts = torch.stack([torch.linalg.cross(c - b, points[seen] - b).norm(dim=1),
+                         torch.linalg.cross(a - c, points[seen] - c).norm(dim=1),
+                         torch.linalg.cross(b - a, points[seen] - a).norm(dim=1)], 1)
+    assert torch.allclose(parts.sum(1), area, rtol=1e-4)  # the three parts tile the triangle
+    torch.testing.assert_close(_barycentric(corners, points[seen]), parts / area[:, None], rtol=0, atol=1e-4)
+    # the floor (y = 0) seen below the horizon, the lamp above: the camera looks down from y = 2
+    floor = mesh.surface_names.index("floor")
+    on_floor = mesh.surface[element[seen]] == floor
+    assert float(points[seen][on_floor][:, 1].abs().max()) < 1e-9
+    assert bool((points[seen][~on_floor][:, 1] == 1.0).all())
+
+
+def test_the_picture_estimate_reads_the_error_of_the_pixels():
+    """Over the pixels that show the floor: the estimate from 500 of them against the error
+    the closed form measures at all 1,744 of them, within 10% (0.7-1.2% measured)."""
+    result = hemirad.solve(lamp_over_floor(0.5, 0))
+    mesh = result.mesh
+    element, points = pixel_points(mesh, result.scene.camera)
+    floor = (element >= 0) & (mesh.surface[element.clamp(min=0)] == mesh.surface_names.index("floor"))
+    element, points = element[floor], points[floor]
+    measured = measured_error(result, points, element, _barycentric(mesh.corners[element], points))
+    picture = result.estimate_image_error(samples=500)
+    assert picture.samples == 500 and picture.relative_rms == pytest.approx(measured, rel=0.10)

@@ -14,6 +14,10 @@ what their cameras see, it reads about 1-2x the error there (figures/accuracy_co
 and within 5% of the error a closed form measures (tests/test_gathered_error.py). What the
 gather cannot see is the error of the radiosity it gathers.
 
+``gathered_error`` samples every surface by area (the solution, as any view may show it);
+``image_gathered_error`` samples the pixels of a camera's view (the picture, as a
+comparison with a rendered reference weighs it: ``metrics.relative_mse``).
+
 Points that see back faces over most of their hemisphere lie inside a solid or under an
 object standing on them (a block's footprint, unmeshed contacts): no view shows them, and
 their gather (dark) says nothing of the picture; they are left out. Emitting elements are
@@ -21,15 +25,19 @@ not sampled.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from hemirad.core.colour import luminance
 from hemirad.geometry.mesh import Mesh
 from hemirad.lighting.sensors import final_gather, sensor_renderer
 from hemirad.output import display
+from hemirad.output.render import render_view
+from hemirad.scene.model import Camera
 
 #: The share of a sample's (cosine-weighted) hemisphere in which it sees back faces above
 #: which it counts as hidden: inside a closed solid that share is 1, under a one-sided
@@ -81,7 +89,8 @@ def sample_points(mesh: Mesh, among: torch.Tensor, count: int, seed: int = 0
 def gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, reflectance: torch.Tensor,
                    samples: int = DEFAULT_SAMPLES, resolution: int = 128, seed: int = 0) -> GatheredError | None:
     """Estimate the displayed solution's relative RMS error by final gathers at ``samples``
-    points (see the module's docstring); None where no non-emitting surface is sampled.
+    points uniform by area over the non-emitting surfaces (see the module's docstring); None
+    where there are none.
 
     Args:
         mesh: the solved mesh (T elements); radiosity: (T, 3) the display radiosity.
@@ -90,12 +99,81 @@ def gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, 
         seed: of the sampling: the same mesh and seed give the same points.
     """
     mesh = mesh.to("cpu")
-    radiosity, emission, reflectance = (torch.as_tensor(t, dtype=torch.float64).cpu()
-                                        for t in (radiosity, emission, reflectance))
+    emission = torch.as_tensor(emission, dtype=torch.float64).cpu()
     among = ~(emission > 0).any(1) & (mesh.areas > 0)
     if samples <= 0 or not bool(among.any()):
         return None
     element, barycentric, points = sample_points(mesh, among, samples, seed)
+    return _compare(mesh, radiosity, emission, reflectance, element, barycentric, points, resolution)
+
+
+def pixel_points(mesh: Mesh, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """The surface point each pixel's centre sees.
+
+    Returns:
+        (H * W,) the element each pixel sees (-1: none), row by row from the top, and
+        (H * W, 3) float64 the point (on the element's plane).
+    """
+    mesh = mesh.to("cpu")
+    T = mesh.num_elements
+    # each element drawn with its own three vertices, so a vertex value is the element's:
+    # its index (exact in float32 below 2^24), and the corners' offsets from the eye
+    unshared = Mesh(mesh.corners.reshape(-1, 3), torch.arange(3 * T).reshape(T, 3), mesh.surface, mesh.material,
+                    mesh.surface_names, mesh.level)
+    flat = dataclasses.replace(camera, supersample=1)  # pixel centres: one surface each
+    number = torch.arange(1, T + 1, dtype=torch.float64).repeat_interleave(3)
+    ids = render_view(unshared, torch.stack([number, torch.zeros_like(number), torch.zeros_like(number)], 1), flat)
+    element = torch.as_tensor(np.rint(ids[..., 0]).astype(np.int64)).reshape(-1) - 1
+    eye = torch.tensor(camera.position, dtype=torch.float64)
+    offsets = torch.as_tensor(render_view(unshared, unshared.vertices - eye, flat), dtype=torch.float64).reshape(-1, 3)
+    points = eye + offsets
+    seen = element >= 0
+    # onto the element's plane, undoing the float32 of the render
+    c0, n = mesh.corners[element[seen], 0], mesh.normals[element[seen]]
+    points[seen] -= ((points[seen] - c0) * n).sum(1, keepdim=True) * n
+    return element, points
+
+
+def image_gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, reflectance: torch.Tensor,
+                         camera: Camera, samples: int = DEFAULT_SAMPLES, resolution: int = 128,
+                         seed: int = 0) -> GatheredError | None:
+    """As ``gathered_error``, at the surface points seen by ``samples`` pixels drawn evenly
+    (stratified, seeded) from those of ``camera``'s view that show a non-emitting element:
+    the error of the picture, weighted as a per-pixel comparison weighs it."""
+    mesh = mesh.to("cpu")
+    emission = torch.as_tensor(emission, dtype=torch.float64).cpu()
+    element, points = pixel_points(mesh, camera)
+    valid = torch.nonzero(element >= 0).flatten()
+    valid = valid[~(emission[element[valid]] > 0).any(1)]
+    if samples <= 0 or len(valid) == 0:
+        return None
+    generator = torch.Generator().manual_seed(seed)
+    u = (torch.arange(samples, dtype=torch.float64) + torch.rand(samples, generator=generator, dtype=torch.float64))
+    pick = valid[(u / samples * len(valid)).long().clamp(max=len(valid) - 1)]
+    element, points = element[pick], points[pick]
+    barycentric = _barycentric(mesh.corners.index_select(0, element), points)
+    return _compare(mesh, radiosity, emission, reflectance, element, barycentric, points, resolution)
+
+
+def _barycentric(corners: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """(N, 3) the barycentric coordinates of ``points`` (N, 3) in their triangles (N, 3, 3),
+    clamped into the triangle (a pixel centre on an edge may round outside)."""
+    a, b, c = corners.unbind(1)
+    v0, v1, v2 = b - a, c - a, points - a
+    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
+    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
+    denominator = (d00 * d11 - d01 * d01).clamp(min=1e-300)
+    v = (d11 * d20 - d01 * d21) / denominator
+    w = (d00 * d21 - d01 * d20) / denominator
+    weights = torch.stack([1 - v - w, v, w], 1).clamp(min=0)
+    return weights / weights.sum(1, keepdim=True)
+
+
+def _compare(mesh: Mesh, radiosity, emission: torch.Tensor, reflectance, element: torch.Tensor,
+             barycentric: torch.Tensor, points: torch.Tensor, resolution: int) -> GatheredError | None:
+    """The estimate from N sampled points: (N,) their elements, (N, 3) barycentric
+    coordinates there and (N, 3) the points."""
+    radiosity, reflectance = (torch.as_tensor(t, dtype=torch.float64).cpu() for t in (radiosity, reflectance))
     vertex = display.conforming_vertex_values(mesh, display.vertex_values(mesh, radiosity))  # (V, 3)
     shown = luminance((vertex[mesh.triangles.index_select(0, element)] * barycentric[:, :, None]).sum(1))
     normals = mesh.normals.index_select(0, element)
