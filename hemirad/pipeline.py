@@ -115,15 +115,16 @@ class Result:
         return gathered_error(self.mesh, self.display_radiosity, self.emission, self.reflectance,
                               o.error_samples, o.resolution)
 
-    def estimate_image_error(self, camera: Camera | None = None, samples: int | None = None) -> GatheredError | None:
+    def estimate_image_error(self, camera: Camera | None = None, samples: int | None = None,
+                             mask=None) -> GatheredError | None:
         """The relative RMS error of the picture from ``camera`` (default: the scene's), as a
         per-pixel comparison with a rendered reference weighs it, estimated by final gathers
-        at the points ``samples`` of its pixels see (default ``solver.error_samples``;
-        ``evaluation.gathered_error.image_gathered_error``)."""
+        at the points ``samples`` of its pixels see (default ``solver.error_samples``), of
+        those in ``mask`` (H, W) bool when given (``evaluation.gathered_error``)."""
         o = self.scene.solver
         return image_gathered_error(self.mesh, self.display_radiosity, self.emission, self.reflectance,
                                     self.scene.camera if camera is None else camera,
-                                    o.error_samples if samples is None else samples, o.resolution)
+                                    o.error_samples if samples is None else samples, o.resolution, mask=mask)
 
     @property
     def ambient(self) -> torch.Tensor:

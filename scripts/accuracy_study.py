@@ -236,7 +236,7 @@ def _scored(name, label, value, scene, solver, seconds, comparison) -> dict:
     start = time.perf_counter()
     gathered = result.estimate_error()
     estimate_seconds = time.perf_counter() - start
-    picture = result.estimate_image_error(comparison.reference.camera)
+    picture = result.estimate_image_error(comparison.reference.camera, mask=comparison.mask)  # the compared pixels
     return {"scene": name, "method": label, "value": value, "elements": solver.mesh.num_elements,
             "shots": s.shots, "unshot_fraction": solver.unshot_fraction, "seconds": seconds,
             "estimated_error": gathered.relative_rms, "estimated_standard_error": gathered.standard_error,
@@ -350,8 +350,8 @@ def write_converged_table(path: Path, rows: list[dict]) -> None:
              "relMSE with a third of its elements in half its seconds). relMSE as in the study above; "
              "RMS = sqrt(relMSE), over the pixels the camera shows. The run's own estimates of that RMS, by "
              "final gathers (`evaluation/gathered_error.py`, with their standard errors): picture, at the "
-             "points 1,000 of the reference camera's pixels see (`Result.estimate_image_error`), weighted as "
-             "the relMSE is, and its ratio to the RMS; surfaces, at 1,000 points over all the surfaces "
+             "points 1,000 of the compared pixels see (`Result.estimate_image_error`), weighted as the relMSE "
+             "is, and its ratio to the RMS; surfaces, at 1,000 points over all the surfaces "
              "(`stats.json`'s `estimated_error`; seconds: its cost, not counted in the run's), which the "
              "camera may not show; interpolation: the estimate the elements are ranked by "
              "(`interpolation_error`).", ""]

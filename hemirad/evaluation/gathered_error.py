@@ -136,13 +136,16 @@ def pixel_points(mesh: Mesh, camera: Camera) -> tuple[torch.Tensor, torch.Tensor
 
 def image_gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, reflectance: torch.Tensor,
                          camera: Camera, samples: int = DEFAULT_SAMPLES, resolution: int = 128,
-                         seed: int = 0) -> GatheredError | None:
+                         seed: int = 0, mask: np.ndarray | None = None) -> GatheredError | None:
     """As ``gathered_error``, at the surface points seen by ``samples`` pixels drawn evenly
-    (stratified, seeded) from those of ``camera``'s view that show a non-emitting element:
-    the error of the picture, weighted as a per-pixel comparison weighs it."""
+    (stratified, seeded) from those of ``camera``'s view that show a non-emitting element
+    (and are in ``mask`` (H, W) bool, when given: a comparison's pixels): the error of the
+    picture, weighted as a per-pixel comparison weighs it."""
     mesh = mesh.to("cpu")
     emission = torch.as_tensor(emission, dtype=torch.float64).cpu()
     element, points = pixel_points(mesh, camera)
+    if mask is not None:
+        element = torch.where(torch.as_tensor(np.asarray(mask, dtype=bool).reshape(-1)), element, -1)
     valid = torch.nonzero(element >= 0).flatten()
     valid = valid[~(emission[element[valid]] > 0).any(1)]
     if samples <= 0 or len(valid) == 0:
