@@ -7,16 +7,14 @@ values (``output.display``). What the solution says x receives is a final gather
 hemicube at x, every pixel's delta form factor times the radiosity of the element it sees,
 so B(x) = E_k + rho_k sum_j F_xj B_j (``lighting.sensors``). The gather resolves what the
 mesh cannot: a shadow edge or a penumbra inside an element, light falling off over a large
-wall element, a contact line; and it does not trust the element's own value. The
-difference of the two, over points sampled uniformly by area, estimates the picture's
-relative RMS error over all surfaces; measured against path-traced references, which see
-what their cameras see, it reads about 1-2x the error there (figures/accuracy_converged.md),
-and within 5% of the error a closed form measures (tests/test_gathered_error.py). What the
-gather cannot see is the error of the radiosity it gathers.
-
+wall element, a contact line; and it does not trust the element's own value. The relative
+RMS difference of the two over sampled points estimates the displayed solution's error:
 ``gathered_error`` samples every surface by area (the solution, as any view may show it);
-``image_gathered_error`` samples the pixels of a camera's view (the picture, as a
-comparison with a rendered reference weighs it: ``metrics.relative_mse``).
+``image_gathered_error`` the points a camera's pixels see (the picture, weighted as a
+per-pixel comparison with a rendered reference weighs it, ``metrics.relative_mse``). Both
+read within 5% of the error a closed form measures (tests/test_gathered_error.py); against
+the path-traced references see figures/accuracy_converged.md. What the gather cannot see
+is the error of the radiosity it gathers.
 
 Points that see back faces over most of their hemisphere lie inside a solid or under an
 object standing on them (a block's footprint, unmeshed contacts): no view shows them, and
@@ -54,7 +52,8 @@ class GatheredError:
 
     Attributes:
         relative_rms: sqrt(sum e^2 / sum L^2) over the kept samples: e the displayed less the
-            gathered luminance, L the gathered luminance (area-weighted by the sampling).
+            gathered luminance, L the gathered luminance (weighted as the points were
+            drawn: by area, or by pixel).
         standard_error: of ``relative_rms`` (delta method over the samples).
         samples: the samples kept (not hidden).
     """
