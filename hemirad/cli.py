@@ -40,13 +40,6 @@ def _non_negative_int(text: str) -> int:
     return value
 
 
-def _count(text: str) -> int:
-    value = _number(text, int)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
-    return value
-
-
 def _depth(text: str) -> int:
     value = _number(text, int)
     if not 0 <= value <= 16:
@@ -132,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "Lambert's closed form times the visibility the hemicube finds; pixels, "
                              "their pixels' sum as in the paper; auto (the default), closed_form when "
                              "refining, else pixels (solver.small_receivers)")
-    parser.add_argument("--error-samples", type=_count, metavar="N",
+    parser.add_argument("--error-samples", type=_non_negative_int, metavar="N",
                         help="points at which the solution checks its own error by final gathers "
                              "(stats.json's estimated_error; 0: none; solver.error_samples, default 1000)")
     parser.add_argument("--device", type=_device,
