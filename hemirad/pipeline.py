@@ -552,12 +552,13 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     stats.update(_stats(scene, solver, final, mesh.num_elements, elapsed(), resumed_from, rounds, answer_refiner))
     stats.update(units=scene.units, metres_per_unit=scene.metres_per_unit,
                  flux=photometry.flux_emissions(scene, mesh))
-    estimating = time.perf_counter()
     if estimated is None or estimated[0] != (state.shots, final.num_elements):  # not the last round's
-        estimated = (None, result.estimate_error())
+        estimating = time.perf_counter()
+        gathered = result.estimate_error()
+        estimated = (None, gathered, time.perf_counter() - estimating)
     interpolation = estimated_relative_error(final, result.radiosity, emission=result.emission)
     stats.update(_estimate_stats(estimated[1], interpolation))
-    stats["seconds"]["estimate"] = time.perf_counter() - estimating
+    stats["seconds"]["estimate"] = estimated[2]  # the final mesh's estimate (each round's counts in "solve")
     if scene.sensors or scene.grids:
         measured = time.perf_counter()
         result.sensors, result.grids = survey.measure(scene, final, result.display_radiosity)
@@ -582,8 +583,8 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
     """Shoot to the stopping rule and refine where the answer is worst, in rounds
     (``adaptive.answer``), checkpointed by ``saver`` after shots and after every round's
     split, and resumed from a checkpoint's ``run`` (read from ``path``); returns the rounds,
-    the refiner that split, and the last round's estimate (``GatheredError`` or None) with
-    the (shots, elements) it was made at."""
+    the refiner that split, and the last round's estimate: the (shots, elements) it was
+    made at, the ``GatheredError`` (or None) and its seconds."""
     options, refine = scene.solver, scene.refine
     refiner = Refiner(dataclasses.replace(refine, criterion=ANSWER), solver.emission)
     reports: list[RoundReport] = []
@@ -596,14 +597,15 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
             raise HemiradInputError(f"cannot resume from {path}: its rounds of refinement judged on the answer "
                                     f"are missing or do not fit ({exc}). Start without --resume to begin "
                                     "afresh.") from exc
-    last: list = [None]  # (shots, elements) and the estimate made there
+    last: list = [None]  # (shots, elements), the estimate made there and its seconds
 
     def estimate() -> float:
         """The round's estimate: by final gathers, or where the scene asks for none, the
         interpolation estimate of the element ranking."""
         result = Result.of_solver(scene, solver)
+        start = time.perf_counter()
         gathered = result.estimate_error()
-        last[0] = ((solver.state.shots, solver.mesh.num_elements), gathered)
+        last[0] = ((solver.state.shots, solver.mesh.num_elements), gathered, time.perf_counter() - start)
         if gathered is None:
             return estimated_relative_error(result.mesh, result.radiosity, emission=result.emission)
         return gathered.relative_rms
