@@ -9,7 +9,8 @@ import torch
 import yaml
 
 import hemirad
-from hemirad.evaluation.gathered_error import _barycentric, gathered_error, pixel_points, sample_points
+from hemirad.evaluation.gathered_error import gathered_error, pixel_points, sample_points
+from hemirad.geometry.mesh import barycentric
 from hemirad.geometry.analytic import point_to_polygon
 from hemirad.scene.loader import parse_scene
 
@@ -104,7 +105,7 @@ def test_each_pixel_sees_a_point_of_the_element_drawn_there():
                          torch.linalg.cross(a - c, points[seen] - c).norm(dim=1),
                          torch.linalg.cross(b - a, points[seen] - a).norm(dim=1)], 1)
     assert torch.allclose(parts.sum(1), area, rtol=1e-4)  # the three parts tile the triangle
-    torch.testing.assert_close(_barycentric(corners, points[seen]), parts / area[:, None], rtol=0, atol=1e-4)
+    torch.testing.assert_close(barycentric(corners, points[seen]), parts / area[:, None], rtol=0, atol=1e-4)
     # the floor (y = 0) seen below the horizon, the lamp above: the camera looks down from y = 2
     floor = mesh.surface_names.index("floor")
     on_floor = mesh.surface[element[seen]] == floor
@@ -120,6 +121,6 @@ def test_the_picture_estimate_reads_the_error_of_the_pixels():
     element, points = pixel_points(mesh, result.scene.camera)
     floor = (element >= 0) & (mesh.surface[element.clamp(min=0)] == mesh.surface_names.index("floor"))
     element, points = element[floor], points[floor]
-    measured = measured_error(result, points, element, _barycentric(mesh.corners[element], points))
+    measured = measured_error(result, points, element, barycentric(mesh.corners[element], points))
     picture = result.estimate_image_error(samples=500)
     assert picture.samples == 500 and picture.relative_rms == pytest.approx(measured, rel=0.10)

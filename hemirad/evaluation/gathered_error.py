@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from hemirad.core.colour import luminance
-from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.mesh import Mesh, barycentric
 from hemirad.lighting.sensors import final_gather, sensor_renderer
 from hemirad.output import display
 from hemirad.output.render import render_view
@@ -80,9 +80,9 @@ def sample_points(mesh: Mesh, among: torch.Tensor, count: int, seed: int = 0
     element = candidates[torch.searchsorted(cumulative, u).clamp(max=len(candidates) - 1)]
     r1, r2 = torch.rand(2, count, generator=generator, dtype=torch.float64)
     s = r1.sqrt()  # uniform over the triangle
-    barycentric = torch.stack([1 - s, s * (1 - r2), s * r2], 1)
-    points = (mesh.corners.index_select(0, element) * barycentric[:, :, None]).sum(1)
-    return element, barycentric, points
+    coordinates = torch.stack([1 - s, s * (1 - r2), s * r2], 1)
+    points = (mesh.corners.index_select(0, element) * coordinates[:, :, None]).sum(1)
+    return element, coordinates, points
 
 
 def gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, reflectance: torch.Tensor,
@@ -102,8 +102,8 @@ def gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, 
     among = ~(emission > 0).any(1) & (mesh.areas > 0)
     if samples <= 0 or not bool(among.any()):
         return None
-    element, barycentric, points = sample_points(mesh, among, samples, seed)
-    return _compare(mesh, radiosity, emission, reflectance, element, barycentric, points, resolution)
+    element, coordinates, points = sample_points(mesh, among, samples, seed)
+    return _compare(mesh, radiosity, emission, reflectance, element, coordinates, points, resolution)
 
 
 def pixel_points(mesh: Mesh, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
@@ -153,31 +153,19 @@ def image_gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Te
     u = (torch.arange(samples, dtype=torch.float64) + torch.rand(samples, generator=generator, dtype=torch.float64))
     pick = valid[(u / samples * len(valid)).long().clamp(max=len(valid) - 1)]
     element, points = element[pick], points[pick]
-    barycentric = _barycentric(mesh.corners.index_select(0, element), points)
-    return _compare(mesh, radiosity, emission, reflectance, element, barycentric, points, resolution)
-
-
-def _barycentric(corners: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """(N, 3) the barycentric coordinates of ``points`` (N, 3) in their triangles (N, 3, 3),
-    clamped into the triangle (a pixel centre on an edge may round outside)."""
-    a, b, c = corners.unbind(1)
-    v0, v1, v2 = b - a, c - a, points - a
-    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
-    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
-    denominator = (d00 * d11 - d01 * d01).clamp(min=1e-300)
-    v = (d11 * d20 - d01 * d21) / denominator
-    w = (d00 * d21 - d01 * d20) / denominator
-    weights = torch.stack([1 - v - w, v, w], 1).clamp(min=0)
-    return weights / weights.sum(1, keepdim=True)
+    # clamped into the triangle: a pixel centre on an edge may round outside
+    coordinates = barycentric(mesh.corners.index_select(0, element), points).clamp(min=0)
+    coordinates = coordinates / coordinates.sum(1, keepdim=True)
+    return _compare(mesh, radiosity, emission, reflectance, element, coordinates, points, resolution)
 
 
 def _compare(mesh: Mesh, radiosity, emission: torch.Tensor, reflectance, element: torch.Tensor,
-             barycentric: torch.Tensor, points: torch.Tensor, resolution: int) -> GatheredError | None:
-    """The estimate from N sampled points: (N,) their elements, (N, 3) barycentric
-    coordinates there and (N, 3) the points."""
+             coordinates: torch.Tensor, points: torch.Tensor, resolution: int) -> GatheredError | None:
+    """The estimate from N sampled points: (N,) their elements, (N, 3) their barycentric
+    ``coordinates`` there and (N, 3) the points."""
     radiosity, reflectance = (torch.as_tensor(t, dtype=torch.float64).cpu() for t in (radiosity, reflectance))
     vertex = display.conforming_vertex_values(mesh, display.vertex_values(mesh, radiosity))  # (V, 3)
-    shown = luminance((vertex[mesh.triangles.index_select(0, element)] * barycentric[:, :, None]).sum(1))
+    shown = luminance((vertex[mesh.triangles.index_select(0, element)] * coordinates[:, :, None]).sum(1))
     normals = mesh.normals.index_select(0, element)
     with sensor_renderer(mesh, points.numpy(), resolution) as renderer:
         gather = final_gather(mesh, radiosity, points.numpy(), normals.numpy(), renderer=renderer)

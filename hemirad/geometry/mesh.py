@@ -12,6 +12,7 @@ from typing import Any, Callable, Hashable
 import torch
 
 from hemirad.core.device import as_tensor
+from hemirad.core.fastops import row_sums
 
 
 class DerivedCache:
@@ -236,6 +237,18 @@ class Mesh:
             s_off += int(p.surface.max()) + 1 if len(p.surface) else 0
         return Mesh(torch.cat(vertices), torch.cat(triangles), torch.cat(surface), torch.cat(material), names,
                     torch.cat(level), torch.cat(parents))
+
+
+def barycentric(triangles: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """(n, 3) the barycentric coordinates of ``points`` (n, 3) in the planes of their
+    ``triangles`` (n, 3, 3), by corner (a point outside its triangle has a negative one)."""
+    a, b, c = triangles.unbind(1)
+    e0, e1, p = b - a, c - a, points - a
+    d00, d01, d11 = row_sums(e0 * e0), row_sums(e0 * e1), row_sums(e1 * e1)
+    d20, d21 = row_sums(p * e0), row_sums(p * e1)
+    det = d00 * d11 - d01 * d01
+    v, w = (d11 * d20 - d01 * d21) / det, (d00 * d21 - d01 * d20) / det
+    return torch.stack([1.0 - v - w, v, w], 1)
 
 
 def _centroids(vertices: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:

@@ -20,10 +20,10 @@ import math
 
 import torch
 
-from hemirad.core.fastops import flatnonzero, row_sums, rows_touching
+from hemirad.core.fastops import flatnonzero, rows_touching
 from hemirad.geometry.edges import (MIDPOINT_INDEX, MidpointFinder, edge_keys, key_ends, lookup, merged_index,
                                     midpoint_index, midpoint_keys, midpoint_lookup, search, triangle_edges)
-from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.mesh import Mesh, barycentric
 from hemirad.geometry.patterns import CHILDREN, PATTERNS
 
 def _split_pattern1(vertices: torch.Tensor, triangles: torch.Tensor, chosen: torch.Tensor,
@@ -124,12 +124,7 @@ def child_containing(triangles: torch.Tensor, points: torch.Tensor, pattern: str
     finds the child it descends from): (n, 3, 3) its corners (in the split's order and
     winding) and (n,) its number among its siblings."""
     a, b, c = triangles.unbind(1)
-    e0, e1, p = b - a, c - a, points - a
-    d00, d01, d11 = row_sums(e0 * e0), row_sums(e0 * e1), row_sums(e1 * e1)
-    d20, d21 = row_sums(p * e0), row_sums(p * e1)
-    det = d00 * d11 - d01 * d01
-    v, w = (d11 * d20 - d01 * d21) / det, (d00 * d21 - d01 * d20) / det  # barycentrics of b, c
-    u = 1.0 - v - w
+    u, v, w = barycentric(triangles, points).unbind(1)
     if pattern == "pattern1":  # (v0 v1 c), (v1 v2 c), (v2 v0 c): the one without the smallest coordinate's corner
         g = triangles.mean(1)
         children = torch.stack([torch.stack([a, b, g], 1), torch.stack([b, c, g], 1), torch.stack([c, a, g], 1)], 1)
