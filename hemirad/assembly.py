@@ -45,7 +45,7 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
     refiner = Refiner(scene.refine, emission, relabel=relabel, bound=bound) if per_shot else None
     device = torch.device(select_device(scene.solver.device) if device is None else device)
     options = scene.solver
-    patches = make_patches(scene, mesh, device) if options.patch_size not in (None, "none") else None
+    patches = make_patches(scene, mesh, device) if options.shoots_patches else None
     return ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner, cull=cull,
                              cache_bytes=int(options.cache_mb * (1 << 20)), patches=patches,
                              overshoot=options.overshoot, sweeps=options.sweeps, near_reach=NEAR_REACH if patches is not None else 0.0,

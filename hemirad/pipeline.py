@@ -572,7 +572,7 @@ def _check_answer_refinement(scene: Scene) -> None:
     the initial mesh's patches)."""
     if not scene.refines_by_answer:
         return
-    if scene.solver.patch_size in (None, "none"):
+    if not scene.solver.shoots_patches:
         raise _key_error(scene, "refine.criterion", "a per-shot criterion when every element shoots "
                          "(solver.patch_size none)", ANSWER, "Refinement judged on the answer solves each "
                          "refined mesh by the initial mesh's patches; use solver.patch_size auto, or another criterion.")

@@ -174,6 +174,11 @@ class SolverOptions:
     # estimated error, and what refinement judged on the answer stops by; 0: no estimate
     error_samples: int = 1000
 
+    @property
+    def shoots_patches(self) -> bool:
+        """Whether patches shoot for their elements (``patch_size`` not none)."""
+        return self.patch_size not in (None, "none")
+
     def paper(self) -> None:
         """Shoot as the paper does: every element, from its centroid, no overshooting, each
         receiver's form factor its pixels' sum."""
@@ -218,13 +223,13 @@ class RefineOptions:
             return small_receivers
         return "closed_form" if self.enabled else "pixels"
 
-    def resolved_criterion(self, patch_size) -> str:
-        """``criterion`` made definite for a solver of ``patch_size``: ``auto`` is ``answer``
-        where patches shoot and the paper's ``gradient`` where every element does (the
+    def resolved_criterion(self, patches: bool) -> str:
+        """``criterion`` made definite for a solver where ``patches`` shoot or not: ``auto`` is
+        ``answer`` where they do and the paper's ``gradient`` where every element shoots (the
         answer's rounds solve each refined mesh by patches)."""
         if self.criterion != AUTO_CRITERION:
             return self.criterion
-        return PAPER_CRITERION if patch_size in (None, "none") else ANSWER
+        return ANSWER if patches else PAPER_CRITERION
 
 
 @dataclass
@@ -298,7 +303,7 @@ class Scene:
     @property
     def refine_criterion(self) -> str:
         """The refinement criterion this scene runs (``RefineOptions.resolved_criterion``)."""
-        return self.refine.resolved_criterion(self.solver.patch_size)
+        return self.refine.resolved_criterion(self.solver.shoots_patches)
 
     @property
     def refines_by_answer(self) -> bool:
