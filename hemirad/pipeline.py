@@ -521,7 +521,8 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     solver = make_solver(scene, mesh, device=device)
     before = {"mesh": 0.0, "solve": 0.0}  # seconds spent by the runs this one continues
     resumed_from = None
-    rounds, answer_refiner, estimated = None, None, None
+    rounds, answer_refiner = None, None
+    estimate = _ErrorEstimate(scene, solver)
     try:
         check_before_solving(scene, mesh, solver)
         if saved is not None:
@@ -536,12 +537,11 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
             saver = _CheckpointWriter(checkpoint, fingerprint, checkpoint_every, solver, mesh.num_elements, elapsed,
                                       None if saved is None else solver.state.shots)
         if scene.refines_by_answer:
-            rounds, answer_refiner, estimated = _refine_by_answer(scene, solver, progress, saver,
-                                                                  None if saved is None else saved[1], checkpoint)
-            state = solver.state
+            rounds, answer_refiner = _refine_by_answer(scene, solver, progress, saver,
+                                                       None if saved is None else saved[1], checkpoint, estimate)
         else:
-            state = solver.run(options.max_shots, options.unshot_fraction,
-                               progress if saver is None else saver.after_shot(progress))
+            solver.run(options.max_shots, options.unshot_fraction,
+                       progress if saver is None else saver.after_shot(progress))
         if saver is not None:
             saver.finish()
     finally:
@@ -552,13 +552,10 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     stats.update(_stats(scene, solver, final, mesh.num_elements, elapsed(), resumed_from, rounds, answer_refiner))
     stats.update(units=scene.units, metres_per_unit=scene.metres_per_unit,
                  flux=photometry.flux_emissions(scene, mesh))
-    if estimated is None or estimated[0] != (state.shots, final.num_elements):  # not the last round's
-        estimating = time.perf_counter()
-        gathered = result.estimate_error()
-        estimated = (None, gathered, time.perf_counter() - estimating)
+    gathered, seconds = estimate()  # the last round's, when refinement judged on the answer made one here
     interpolation = estimated_relative_error(final, result.radiosity, emission=result.emission)
-    stats.update(_estimate_stats(estimated[1], interpolation))
-    stats["seconds"]["estimate"] = estimated[2]  # the final mesh's estimate (each round's counts in "solve")
+    stats.update(_estimate_stats(gathered, interpolation))
+    stats["seconds"]["estimate"] = seconds  # the final mesh's estimate (each round's counts in "solve")
     if scene.sensors or scene.grids:
         measured = time.perf_counter()
         result.sensors, result.grids = survey.measure(scene, final, result.display_radiosity)
@@ -579,12 +576,12 @@ def _check_answer_refinement(scene: Scene) -> None:
 
 
 def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: "_CheckpointWriter | None",
-                      run: dict | None, path) -> tuple[list[RoundReport], Refiner, tuple | None]:
+                      run: dict | None, path, estimate: "_ErrorEstimate") -> tuple[list[RoundReport], Refiner]:
     """Shoot to the stopping rule and refine where the answer is worst, in rounds
-    (``adaptive.answer``), checkpointed by ``saver`` after shots and after every round's
-    split, and resumed from a checkpoint's ``run`` (read from ``path``); returns the rounds,
-    the refiner that split, and the last round's estimate: the (shots, elements) it was
-    made at, the ``GatheredError`` (or None) and its seconds."""
+    (``adaptive.answer``), until ``estimate`` (or, where the scene asks for no samples, the
+    interpolation estimate) is under the tolerance; checkpointed by ``saver`` after shots and
+    after every round's split, and resumed from a checkpoint's ``run`` (read from ``path``);
+    returns the rounds and the refiner that split."""
     options, refine = scene.solver, scene.refine
     refiner = Refiner(dataclasses.replace(refine, criterion=ANSWER), solver.emission)
     reports: list[RoundReport] = []
@@ -597,17 +594,11 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
             raise HemiradInputError(f"cannot resume from {path}: its rounds of refinement judged on the answer "
                                     f"are missing or do not fit ({exc}). Start without --resume to begin "
                                     "afresh.") from exc
-    last: list = [None]  # (shots, elements), the estimate made there and its seconds
 
-    def estimate() -> float:
-        """The round's estimate: by final gathers, or where the scene asks for none, the
-        interpolation estimate of the element ranking."""
-        result = Result.of_solver(scene, solver)
-        start = time.perf_counter()
-        gathered = result.estimate_error()
-        last[0] = ((solver.state.shots, solver.mesh.num_elements), gathered, time.perf_counter() - start)
+    def stopping_estimate() -> float:
+        gathered, _ = estimate()
         if gathered is None:
-            return estimated_relative_error(result.mesh, result.radiosity, emission=result.emission)
+            return estimated_relative_error(solver.mesh, solver.state.radiosity, emission=solver.emission)
         return gathered.relative_rms
 
     shot_done = progress
@@ -617,8 +608,26 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
     refine_by_answer(solver, refiner, refine.max_elements, refine.tolerance, refine.rounds,
                      lambda: solver.run(options.max_shots, options.unshot_fraction, shot_done),
                      report=None if saver is None else (lambda _: saver.save()), reports=reports,
-                     patches_for=lambda: refined_patches(scene, solver), estimate=estimate)
-    return reports, refiner, last[0]
+                     patches_for=lambda: refined_patches(scene, solver), estimate=stopping_estimate)
+    return reports, refiner
+
+
+class _ErrorEstimate:
+    """The final-gather estimate of ``solver``'s current solution (``Result.estimate_error``)
+    and its seconds, made once per (shots, elements): the last round's of refinement judged
+    on the answer is the finished run's."""
+
+    def __init__(self, scene: Scene, solver: ProgressiveSolver):
+        self.scene, self.solver = scene, solver
+        self._made: tuple | None = None  # (shots, elements), the estimate, its seconds
+
+    def __call__(self) -> tuple[GatheredError | None, float]:
+        key = (self.solver.state.shots, self.solver.mesh.num_elements)
+        if self._made is None or self._made[0] != key:
+            start = time.perf_counter()
+            gathered = Result.of_solver(self.scene, self.solver).estimate_error()
+            self._made = (key, gathered, time.perf_counter() - start)
+        return self._made[1], self._made[2]
 
 
 class _CheckpointWriter:
