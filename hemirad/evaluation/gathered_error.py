@@ -32,7 +32,7 @@ import torch
 
 from hemirad.core.colour import luminance
 from hemirad.geometry.mesh import Mesh, barycentric
-from hemirad.lighting.sensors import final_gather, sensor_renderer
+from hemirad.lighting.sensors import final_gather
 from hemirad.output import display
 from hemirad.output.render import render_view
 from hemirad.scene.model import Camera
@@ -63,6 +63,12 @@ class GatheredError:
     samples: int
 
 
+def _stratified(count: int, generator: torch.Generator) -> torch.Tensor:
+    """(count,) float64 in [0, 1): one uniform draw in each of ``count`` equal strata."""
+    return (torch.arange(count, dtype=torch.float64)
+            + torch.rand(count, generator=generator, dtype=torch.float64)) / count
+
+
 def sample_points(mesh: Mesh, among: torch.Tensor, count: int, seed: int = 0
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``count`` points uniform by area over the elements ``among`` (T,) bool, stratified
@@ -75,8 +81,7 @@ def sample_points(mesh: Mesh, among: torch.Tensor, count: int, seed: int = 0
     mesh = mesh.to("cpu")
     candidates = torch.nonzero(among.cpu()).flatten()
     cumulative = torch.cumsum(mesh.areas.index_select(0, candidates), 0)
-    u = (torch.arange(count, dtype=torch.float64)
-         + torch.rand(count, generator=generator, dtype=torch.float64)) / count * cumulative[-1]
+    u = _stratified(count, generator) * cumulative[-1]
     element = candidates[torch.searchsorted(cumulative, u).clamp(max=len(candidates) - 1)]
     r1, r2 = torch.rand(2, count, generator=generator, dtype=torch.float64)
     s = r1.sqrt()  # uniform over the triangle
@@ -149,9 +154,8 @@ def image_gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Te
     valid = valid[~(emission[element[valid]] > 0).any(1)]
     if samples <= 0 or len(valid) == 0:
         return None
-    generator = torch.Generator().manual_seed(seed)
-    u = (torch.arange(samples, dtype=torch.float64) + torch.rand(samples, generator=generator, dtype=torch.float64))
-    pick = valid[(u / samples * len(valid)).long().clamp(max=len(valid) - 1)]
+    u = _stratified(samples, torch.Generator().manual_seed(seed))
+    pick = valid[(u * len(valid)).long().clamp(max=len(valid) - 1)]
     element, points = element[pick], points[pick]
     # clamped into the triangle: a pixel centre on an edge may round outside
     coordinates = barycentric(mesh.corners.index_select(0, element), points).clamp(min=0)
@@ -167,8 +171,7 @@ def _compare(mesh: Mesh, radiosity, emission: torch.Tensor, reflectance, element
     vertex = display.conforming_vertex_values(mesh, display.vertex_values(mesh, radiosity))  # (V, 3)
     shown = luminance((vertex[mesh.triangles.index_select(0, element)] * coordinates[:, :, None]).sum(1))
     normals = mesh.normals.index_select(0, element)
-    with sensor_renderer(mesh, points.numpy(), resolution) as renderer:
-        gather = final_gather(mesh, radiosity, points.numpy(), normals.numpy(), renderer=renderer)
+    gather = final_gather(mesh, radiosity, points.numpy(), normals.numpy(), resolution)
     gathered = luminance(emission.index_select(0, element) + reflectance.index_select(0, element) * gather.irradiance)
     kept = (gather.coverage - gather.front_coverage) <= HIDDEN_BACK_SHARE
     e2, L2 = (shown - gathered)[kept].pow(2), gathered[kept].pow(2)
