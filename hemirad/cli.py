@@ -13,7 +13,7 @@ from hemirad.core.device import DEVICES, DEVICE_NAMES, is_device_name
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.patterns import PATTERN_CHOICES, describe_patterns
 from hemirad.scene.loader import MAX_SURFACE_NAME, MAX_TRIANGLES, bundled_scenes, load_scene
-from hemirad.scene.model import CRITERION_NAMES, SMALL_RECEIVER_CHOICES
+from hemirad.scene.model import CRITERION_NAMES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES
 from hemirad.scene.sensorfile import read_sensor_file
 
 
@@ -125,6 +125,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "Lambert's closed form times the visibility the hemicube finds; pixels, "
                              "their pixels' sum as in the paper; auto (the default), closed_form when "
                              "refining, else pixels (solver.small_receivers)")
+    parser.add_argument("--reconstruction", choices=RECONSTRUCTION_CHOICES,
+                        help="how element values reach the vertices that shading and exports interpolate: "
+                             "quadratic (the default), a quadratic fitted around each vertex; mean, the "
+                             "area-weighted mean of its elements, as in the paper (solver.reconstruction)")
     parser.add_argument("--error-samples", type=_non_negative_int, metavar="N",
                         help="points at which the solution checks its own error by final gathers "
                              "(stats.json's estimated_error; 0: none; solver.error_samples, default 1000)")
@@ -215,6 +219,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
                       args.unshot_fraction), "resolution": ("--resolution", args.resolution),
                       "device": ("--device", args.device), "patch_size": ("--patch-size", args.patch_size),
                       "small_receivers": ("--small-receivers", args.small_receivers),
+                      "reconstruction": ("--reconstruction", args.reconstruction),
                       "error_samples": ("--error-samples", args.error_samples)}
     refine_options = {"pattern": ("--refine", args.refine), "criterion": ("--criterion", args.criterion),
                       "threshold": ("--threshold", args.threshold),

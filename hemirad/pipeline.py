@@ -39,6 +39,7 @@ from hemirad.lighting import photometry, survey
 from hemirad.lighting.grids import MAX_GRID_POINTS, grid_counts, grid_spacing
 from hemirad.lighting.sensors import SENSOR_RESOLUTION, irradiance_at
 from hemirad.output import display, export, falsecolour, gltf
+from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.output.meshview import pick_surface, surface_view
 from hemirad.output.render import render_view
 from hemirad.scene.meshing import build_mesh
@@ -113,7 +114,7 @@ class Result:
         scene's ``solver.error_samples`` points (``evaluation.gathered_error``); None for 0."""
         o = self.scene.solver
         return gathered_error(self.mesh, self.display_radiosity, self.emission, self.reflectance,
-                              o.error_samples, o.resolution)
+                              o.error_samples, o.resolution, reconstruction=o.reconstruction)
 
     def estimate_image_error(self, camera: Camera | None = None, samples: int | None = None,
                              mask=None) -> GatheredError | None:
@@ -124,7 +125,8 @@ class Result:
         o = self.scene.solver
         return image_gathered_error(self.mesh, self.display_radiosity, self.emission, self.reflectance,
                                     self.scene.camera if camera is None else camera,
-                                    o.error_samples if samples is None else samples, o.resolution, mask=mask)
+                                    o.error_samples if samples is None else samples, o.resolution, mask=mask,
+                                    reconstruction=o.reconstruction)
 
     @property
     def ambient(self) -> torch.Tensor:
@@ -154,9 +156,10 @@ class Result:
         return photometry.luminance_cd(self.display_radiosity, self.scene.units)
 
     def vertex_radiosity(self) -> torch.Tensor:
-        """(V, 3) display radiosity at the vertices: area-weighted within each surface, and at
+        """(V, 3) display radiosity at the vertices, as ``solver.reconstruction`` carries it
+        there from the elements within each surface (``output.reconstruction``), and at
         T-vertices interpolated along the unsplit edge they lie on, so shading has no seams."""
-        return display.conforming_vertex_values(self.mesh, display.vertex_values(self.mesh, self.display_radiosity))
+        return reconstructed_vertex_values(self.mesh, self.display_radiosity, self.scene.solver.reconstruction)
 
     def exposure(self) -> float:
         """Display value per unit radiosity: the camera's, or automatic (the area-weighted mean
@@ -166,10 +169,12 @@ class Result:
         emitting = (self.emission > 0).any(dim=1)
         return display.auto_exposure(self.display_radiosity, self.mesh.areas, emitting)
 
-    def linear_image(self) -> np.ndarray:
+    def linear_image(self, vertex_radiosity: torch.Tensor | None = None) -> np.ndarray:
         """(height, width, 3) float32 camera view of the display radiosity: linear, in the
-        scene's units (W/m^2), before exposure and sRGB."""
-        return render_view(self.mesh, self.vertex_radiosity(), self.scene.camera,
+        scene's units (W/m^2), before exposure and sRGB. ``vertex_radiosity``:
+        ``vertex_radiosity()``, to reuse one already computed."""
+        vertex = self.vertex_radiosity() if vertex_radiosity is None else vertex_radiosity
+        return render_view(self.mesh, vertex, self.scene.camera,
                            triangles=display.conforming_triangles(self.mesh))
 
     def image(self, linear: np.ndarray | None = None) -> np.ndarray:
@@ -231,12 +236,15 @@ class Result:
         title = f"Grid {g.name}: Em {s['Em']:.4g} lx, Emin {s['Emin']:.4g} lx{u0}"
         return falsecolour.grid_picture(grid.lux.numpy(), g.origin, g.u, g.v, ILLUMINANCE_UNIT, title, levels)
 
-    def mesh_image(self, surface: str | None = None, size: int = 512) -> np.ndarray:
+    def mesh_image(self, surface: str | None = None, size: int = 512,
+                   vertex_radiosity: torch.Tensor | None = None) -> np.ndarray:
         """(H, W, 3) uint8: one surface seen straight on, its elements shaded and outlined
         (the paper's (a)'(b)'(c)' pictures). ``surface``: a name such as ``room.floor``;
-        default the scene's ``refine.view_surface``, else the floor."""
+        default the scene's ``refine.view_surface``, else the floor. ``vertex_radiosity``:
+        ``vertex_radiosity()``, to reuse one already computed."""
         index = pick_surface(self.mesh, surface or self.scene.refine.view_surface)
-        linear = surface_view(self.mesh, self.vertex_radiosity(), index, size=size)
+        vertex = self.vertex_radiosity() if vertex_radiosity is None else vertex_radiosity
+        linear = surface_view(self.mesh, vertex, index, size=size)
         return display.to_srgb8(linear, self.exposure())
 
     def write(self, folder) -> dict[str, Path]:
@@ -263,11 +271,11 @@ class Result:
         vertex = self.vertex_radiosity()
         check_finite(self, vertex)  # before anything is written
         start = time.perf_counter()
-        linear = self.linear_image()
+        linear = self.linear_image(vertex)
         export.write_png(paths["image"], self.image(linear))
         export.write_exr(paths["HDR image"], self.radiance_image(linear))
         export.write_png(paths["luminance"], self.luminance_image(linear=linear))
-        export.write_png(paths["mesh view"], self.mesh_image())
+        export.write_png(paths["mesh view"], self.mesh_image(vertex_radiosity=vertex))
         for name in surfaces:
             export.write_png(paths[f"falsecolour {name}"], self.surface_falsecolour(name))
         for kind, (path, grid) in grid_pictures.items():
@@ -702,6 +710,7 @@ def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_element
         "hemicubes_rendered": solver.renderer.renders,
         "unshot_fraction": solver.unshot_fraction,
         "hemicube_resolution": scene.solver.resolution,
+        "reconstruction": scene.solver.reconstruction,  # how the vertex values were made
         "refine": {"pattern": scene.refine.pattern, "criterion": scene.refine_criterion,
                    "threshold": scene.refine.threshold, "relative": scene.refine.relative,
                    "absolute_threshold": refiner.threshold if refiner else None,

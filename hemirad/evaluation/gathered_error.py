@@ -33,7 +33,7 @@ import torch
 from hemirad.core.colour import luminance
 from hemirad.geometry.mesh import Mesh, barycentric
 from hemirad.lighting.sensors import final_gather
-from hemirad.output import display
+from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.output.render import render_view
 from hemirad.scene.model import Camera
 
@@ -91,7 +91,8 @@ def sample_points(mesh: Mesh, among: torch.Tensor, count: int, seed: int = 0
 
 
 def gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, reflectance: torch.Tensor,
-                   samples: int = DEFAULT_SAMPLES, resolution: int = 128, seed: int = 0) -> GatheredError | None:
+                   samples: int = DEFAULT_SAMPLES, resolution: int = 128, seed: int = 0,
+                   reconstruction: str = "quadratic") -> GatheredError | None:
     """Estimate the displayed solution's relative RMS error by final gathers at ``samples``
     points uniform by area over the non-emitting surfaces (see the module's docstring); None
     where there are none.
@@ -101,6 +102,8 @@ def gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, 
         emission, reflectance: (T, 3) each element's.
         resolution: the gathers' hemicube resolution.
         seed: of the sampling: the same mesh and seed give the same points.
+        reconstruction: how the display carries element values to its vertices
+            (``output.reconstruction``): the estimate is of what is shown.
     """
     mesh = mesh.to("cpu")
     emission = torch.as_tensor(emission, dtype=torch.float64).cpu()
@@ -108,7 +111,7 @@ def gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, 
     if samples <= 0 or not bool(among.any()):
         return None
     element, coordinates, points = sample_points(mesh, among, samples, seed)
-    return _compare(mesh, radiosity, emission, reflectance, element, coordinates, points, resolution)
+    return _compare(mesh, radiosity, emission, reflectance, element, coordinates, points, resolution, reconstruction)
 
 
 def pixel_points(mesh: Mesh, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
@@ -140,7 +143,8 @@ def pixel_points(mesh: Mesh, camera: Camera) -> tuple[torch.Tensor, torch.Tensor
 
 def image_gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, reflectance: torch.Tensor,
                          camera: Camera, samples: int = DEFAULT_SAMPLES, resolution: int = 128,
-                         seed: int = 0, mask: np.ndarray | None = None) -> GatheredError | None:
+                         seed: int = 0, mask: np.ndarray | None = None,
+                         reconstruction: str = "quadratic") -> GatheredError | None:
     """As ``gathered_error``, at the surface points seen by ``samples`` pixels drawn evenly
     (stratified, seeded) from those of ``camera``'s view that show a non-emitting element
     (and are in ``mask`` (H, W) bool, when given: a comparison's pixels): the error of the
@@ -160,15 +164,15 @@ def image_gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Te
     # clamped into the triangle: a pixel centre on an edge may round outside
     coordinates = barycentric(mesh.corners.index_select(0, element), points).clamp(min=0)
     coordinates = coordinates / coordinates.sum(1, keepdim=True)
-    return _compare(mesh, radiosity, emission, reflectance, element, coordinates, points, resolution)
+    return _compare(mesh, radiosity, emission, reflectance, element, coordinates, points, resolution, reconstruction)
 
 
 def _compare(mesh: Mesh, radiosity, emission: torch.Tensor, reflectance, element: torch.Tensor,
-             coordinates: torch.Tensor, points: torch.Tensor, resolution: int) -> GatheredError | None:
+             coordinates: torch.Tensor, points: torch.Tensor, resolution: int, reconstruction: str) -> GatheredError | None:
     """The estimate from N sampled points: (N,) their elements, (N, 3) their barycentric
     ``coordinates`` there and (N, 3) the points."""
     radiosity, reflectance = (torch.as_tensor(t, dtype=torch.float64).cpu() for t in (radiosity, reflectance))
-    vertex = display.conforming_vertex_values(mesh, display.vertex_values(mesh, radiosity))  # (V, 3)
+    vertex = reconstructed_vertex_values(mesh, radiosity, reconstruction)  # (V, 3)
     shown = luminance((vertex[mesh.triangles.index_select(0, element)] * coordinates[:, :, None]).sum(1))
     normals = mesh.normals.index_select(0, element)
     gather = final_gather(mesh, radiosity, points.numpy(), normals.numpy(), resolution)

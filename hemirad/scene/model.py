@@ -43,6 +43,10 @@ UNITS = ("radiometric", "photometric")
 #: form times the visibility the hemicube finds (``transport.smallreceivers``), or ``auto``:
 #: the closed form when refinement makes elements small, else the pixels (``resolved_small_receivers``).
 SMALL_RECEIVER_CHOICES = ("auto", "pixels", "closed_form")
+#: ``solver.reconstruction`` (and ``--reconstruction``): how element values reach the vertices
+#: that shading, exports and error estimates interpolate: a quadratic fitted around each
+#: vertex, or the paper's area-weighted mean (``hemirad.output.reconstruction``).
+RECONSTRUCTION_CHOICES = ("quadratic", "mean")
 
 
 @dataclass
@@ -173,6 +177,7 @@ class SolverOptions:
     # points at which the solution checks itself (``evaluation.gathered_error``): stats.json's
     # estimated error, and what refinement judged on the answer stops by; 0: no estimate
     error_samples: int = 1000
+    reconstruction: str = "quadratic"  # one of RECONSTRUCTION_CHOICES
 
     @property
     def shoots_patches(self) -> bool:
@@ -181,9 +186,9 @@ class SolverOptions:
 
     def paper(self) -> None:
         """Shoot as the paper does: every element, from its centroid, no overshooting, each
-        receiver's form factor its pixels' sum."""
+        receiver's form factor its pixels' sum, vertices shaded by the mean of their elements."""
         self.patch_size, self.overshoot, self.shooter_split, self.sweeps = None, False, None, False
-        self.small_receivers = "pixels"
+        self.small_receivers, self.reconstruction = "pixels", "mean"
 
 
 @dataclass

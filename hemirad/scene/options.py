@@ -6,7 +6,7 @@ import numpy as np
 from hemirad.core.device import DEVICE_NAMES, is_device_name
 from hemirad.geometry.patterns import PATTERN_CHOICES
 from hemirad.scene.keys import Checker
-from hemirad.scene.model import (CRITERION_NAMES, SMALL_RECEIVER_CHOICES, Camera, MeshingOptions, RefineOptions,
+from hemirad.scene.model import (CRITERION_NAMES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES, Camera, MeshingOptions, RefineOptions,
                                  SolverOptions)
 
 #: Refuse scenes whose estimated initial triangle count exceeds this.
@@ -14,7 +14,7 @@ MAX_TRIANGLES = 5_000_000
 
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot", "sweeps",
-                "shooter_split", "cache_mb", "small_receivers", "error_samples")
+                "shooter_split", "cache_mb", "small_receivers", "error_samples", "reconstruction")
 _MESHING_KEYS = ("contacts", "intersections")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
                 "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds")
@@ -84,6 +84,8 @@ def read_solver(check: Checker, v) -> SolverOptions:
                                       lambda x: 0 <= x <= 1e7)
     if "small_receivers" in m:
         opts.small_receivers = check.choice(m["small_receivers"], "solver.small_receivers", SMALL_RECEIVER_CHOICES)
+    if "reconstruction" in m:
+        opts.reconstruction = check.choice(m["reconstruction"], "solver.reconstruction", RECONSTRUCTION_CHOICES)
     if "error_samples" in m:
         opts.error_samples = check.integer(m["error_samples"], "solver.error_samples", "a whole number >= 0", 0)
     return opts
