@@ -561,7 +561,8 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     stats.update(units=scene.units, metres_per_unit=scene.metres_per_unit,
                  flux=photometry.flux_emissions(scene, mesh))
     gathered, seconds = estimate()  # the last round's, when refinement judged on the answer made one here
-    interpolation = estimated_relative_error(final, result.radiosity, emission=result.emission)
+    interpolation = estimated_relative_error(final, result.radiosity, emission=result.emission,
+                                             reconstruction=scene.solver.reconstruction)
     stats.update(_estimate_stats(gathered, interpolation))
     stats["seconds"]["estimate"] = seconds  # the final mesh's estimate (each round's counts in "solve")
     if scene.sensors or scene.grids:
@@ -606,7 +607,8 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
     def stopping_estimate() -> float:
         gathered, _ = estimate()
         if gathered is None:
-            return estimated_relative_error(solver.mesh, solver.state.radiosity, emission=solver.emission)
+            return estimated_relative_error(solver.mesh, solver.state.radiosity, emission=solver.emission,
+                                            reconstruction=options.reconstruction)
         return gathered.relative_rms
 
     shot_done = progress
@@ -616,7 +618,8 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
     refine_by_answer(solver, refiner, refine.max_elements, refine.tolerance, refine.rounds,
                      lambda: solver.run(options.max_shots, options.unshot_fraction, shot_done),
                      report=None if saver is None else (lambda _: saver.save()), reports=reports,
-                     patches_for=lambda: refined_patches(scene, solver), estimate=stopping_estimate)
+                     patches_for=lambda: refined_patches(scene, solver), estimate=stopping_estimate,
+                     reconstruction=options.reconstruction)
     return reports, refiner
 
 

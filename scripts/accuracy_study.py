@@ -242,7 +242,8 @@ def _scored(name, label, value, scene, solver, seconds, comparison) -> dict:
             "estimated_error": gathered.relative_rms, "estimated_standard_error": gathered.standard_error,
             "estimate_seconds": estimate_seconds, "estimated_image_error": picture.relative_rms,
             "estimated_image_standard_error": picture.standard_error,
-            "interpolation_error": estimated_relative_error(result.mesh, result.radiosity, emission=result.emission),
+            "interpolation_error": estimated_relative_error(result.mesh, result.radiosity, emission=result.emission,
+                                                            reconstruction=scene.solver.reconstruction),
             **comparison.scores(result)}
 
 
@@ -301,7 +302,7 @@ def _answer_run(name, shipped, comparison, factor: float, rounds: int, budget: i
 
     try:
         refine_by_answer(solver, refiner, scene.refine.max_elements, 0.0, rounds, shoot_on,
-                         patches_for=lambda: refined_patches(scene, solver))
+                         patches_for=lambda: refined_patches(scene, solver), reconstruction=scene.solver.reconstruction)
     finally:
         solver.close()
     if not every_round:
