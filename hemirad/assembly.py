@@ -9,7 +9,7 @@ from hemirad.adaptive.refine import Refiner
 from hemirad.adaptive.shooter_split import point_source_test
 from hemirad.core.device import select_device
 from hemirad.geometry.mesh import Mesh
-from hemirad.geometry.patches import build_patches, element_sides, group_patches
+from hemirad.geometry.patches import build_patches, element_sides, group_patches, hole_rims
 from hemirad.lighting.photometry import emission_table
 from hemirad.scene.meshing import build_mesh, surface_objects
 from hemirad.scene.model import MeshFile, Scene
@@ -81,16 +81,18 @@ def refined_patches(scene: Scene, solver: ProgressiveSolver, saved: dict | None 
     group, source = (patches.patch, patches.source) if saved is None else (saved["patch"], saved["source"])
     group = group.cpu().numpy().copy()
     owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]
-    alone = (solver.emission > 0).any(dim=1).cpu().numpy() | (patch_sizes(scene, mesh, owner) <= 0)
+    alone = (solver.emission > 0).any(dim=1).cpu().numpy() | (patch_sizes(scene, mesh, owner, rims=False) <= 0)
     group[alone] = group.max() + 1 + np.flatnonzero(alone)
     return PatchShooters(group_patches(mesh, group), solver.device, shooter_test(scene), source=source,
                          source_corners=patches.source_corners, source_split=scene.refine.pattern)
 
 
-def patch_sizes(scene: Scene, mesh: Mesh, owner: np.ndarray) -> np.ndarray:
+def patch_sizes(scene: Scene, mesh: Mesh, owner: np.ndarray, rims: bool = True) -> np.ndarray:
     """(T,) the patch side each element asks for: its object's (``owner`` (T,), the index in
     ``scene.objects`` of each element's) ``patch_size``, else the solver's; ``auto`` is
-    ``AUTO_PATCH_ELEMENTS`` element sides, ``none`` 0 (it shoots alone)."""
+    ``AUTO_PATCH_ELEMENTS`` element sides, ``none`` 0 (it shoots alone); with contacts meshed,
+    0 on the rims of the holes they leave (``geometry.patches.hole_rims``) unless ``rims`` is
+    False."""
     asked = [obj.patch_size if obj.patch_size is not None else scene.solver.patch_size for obj in scene.objects]
     # per object: a multiple of the element side (auto) and a length (a number), one of them 0
     factor = np.asarray([AUTO_PATCH_ELEMENTS if size == "auto" else 0.0 for size in asked])
@@ -98,4 +100,14 @@ def patch_sizes(scene: Scene, mesh: Mesh, owner: np.ndarray) -> np.ndarray:
     # A mesh file's triangles may be finer than its element_size (they are split only when
     # coarser): its auto patches are about 2 x 2 elements of that size, not of its triangles
     nominal = np.asarray([obj.element_size if isinstance(obj, MeshFile) else 0.0 for obj in scene.objects])
-    return factor[owner] * np.maximum(element_sides(mesh), nominal[owner]) + length[owner]
+    size = factor[owner] * np.maximum(element_sides(mesh), nominal[owner]) + length[owner]
+    if rims and scene.meshes_contacts:
+        # Beside what stands on a surface (a footprint's rim) its elements shoot alone: a floor
+        # patch reaching round a block's corner shoots from a centroid that sees the block's
+        # side otherwise than the rim does. Cornell box at 8 cm elements, contacts meshed: the
+        # tall block's front 11% dark with such patches, 0.3% off every element shooting; the
+        # answer's second round relMSE 0.00205 -> 0.00039. On a refined mesh (``rims`` False)
+        # a rim element's children then shoot as one patch: against each refined rim element
+        # alone, 6.9 s for 0.00039 instead of 11.0 s for 0.00037.
+        size[hole_rims(mesh)] = 0.0
+    return size

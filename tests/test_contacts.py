@@ -12,6 +12,7 @@ import torch
 
 import hemirad
 from hemirad.core.errors import SceneError
+from hemirad.geometry.patches import hole_rims
 from hemirad.scene.loader import parse_scene
 from hemirad.scene.meshing import build_mesh
 from hemirad.scene.model import Box, Camera, Material, Quad, Room, Scene
@@ -403,3 +404,49 @@ def test_contacts_are_meshed_by_default_when_refinement_judges_the_answer():
     scene.meshing.contacts = "auto"
     assert_same_mesh(plain, build_mesh(scene))
     assert checkpoints.fingerprint(scene)["meshing.contacts"] is False
+
+
+# ----------------------------------------------------------------------------------------
+# patches beside a footprint
+
+
+def _distance_to_outline(points: np.ndarray, polygon) -> np.ndarray:
+    """(n,) each (n, 2) point's distance to the closed ``polygon``'s edges."""
+    p = np.asarray(polygon, dtype=np.float64)
+    a, b = p, np.roll(p, -1, axis=0)
+    ab = b - a
+    t = np.clip(((points[:, None] - a) * ab).sum(-1) / (ab * ab).sum(-1), 0.0, 1.0)
+    return np.linalg.norm(points[:, None] - (a + t[..., None] * ab), axis=-1).min(1)
+
+
+def test_the_rims_of_the_footprints_are_found_and_nothing_else():
+    """``hole_rims``: the floor elements with a corner on a block's footprint, not those
+    along the walls (the outline), on no other surface, and none without holes."""
+    mesh = build_mesh(load_with_contacts("cornell_box").with_element_sizes_scaled(2.0))
+    rims = hole_rims(mesh)
+    floor = (mesh.surface == mesh.surface_names.index("floor")).numpy()
+    assert rims.any() and not (rims & ~floor).any()
+    corners = mesh.corners.numpy()[:, :, [0, 2]]  # (T, 3, 2) on the floor: x, z
+    near = np.zeros(len(rims), dtype=bool)
+    for footprint in CORNELL_FOOTPRINTS.values():
+        d = _distance_to_outline(corners.reshape(-1, 2), footprint).reshape(-1, 3)
+        near |= (d < 1e-6 * 560).any(1)
+    np.testing.assert_array_equal(rims, near & floor)
+    assert not hole_rims(build_mesh(hemirad.load_scene("cornell_box"))).any()  # no contacts: no holes
+
+
+def test_a_block_beside_a_patched_conforming_floor_gets_the_floors_light():
+    """Floor patches that reach round a block's footprint shot past the block's side from a
+    centroid the footprint's rim does not see the same: the Cornell box's tall block, 8 cm
+    elements, contact meshing, came out 11% darker than with every element shooting. Its
+    rim's elements shoot alone: within 1% (measured 0.3%)."""
+    means = {}
+    for patch_size in ("auto", "none"):
+        scene = load_with_contacts("cornell_box").with_element_sizes_scaled(2.0)
+        scene.solver.patch_size, scene.solver.error_samples = patch_size, 0
+        scene.solver.small_receivers = "closed_form"
+        result = hemirad.solve(scene, progress=None)
+        mesh = result.mesh
+        side = mesh.surface == mesh.surface_names.index("tall_block.side0")
+        means[patch_size] = float((result.display_radiosity[side].mean(1) * mesh.areas[side]).sum() / mesh.areas[side].sum())
+    assert means["auto"] == pytest.approx(means["none"], rel=0.01), means

@@ -141,6 +141,8 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
         if size <= 0:  # patches turned off
             out += _each_alone(members, normals)
             continue
+        out += _each_alone(members[patch_size[members] <= 0], normals)  # those asked to shoot alone
+        members = members[patch_size[members] > 0]
         xy = centroids[members] @ np.stack([u, v]).T  # (k, 2)
         # The grid starts at the lowest centroid, not at the plane's corner: aligned with the
         # element cells, every patch centroid falls on a mesh vertex, and measured on the
@@ -195,6 +197,49 @@ def _mean_plane_axes(members: np.ndarray, normals: np.ndarray, areas: np.ndarray
     """``plane_axes`` of the area-weighted mean normal of the elements ``members`` (k,)."""
     normal = (normals[members] * areas[members, None]).sum(0)
     return plane_axes(normal / np.linalg.norm(normal))
+
+
+def hole_rims(mesh: Mesh) -> np.ndarray:
+    """(T,) bool: the elements of a planar surface with a corner on the rim of a hole in it:
+    where something stands on the surface (a block's footprint, left out by contact
+    meshing) or passes through it. A boundary loop is a hole where it runs clockwise seen
+    from the surface's front (its signed area, sum (a x b) . n over its edges as the
+    triangles give them, is negative); the outline runs counter-clockwise."""
+    triangles = mesh.triangles.cpu().numpy()
+    vertices = mesh.vertices.cpu().numpy()
+    normals = mesh.normals.cpu().numpy()
+    surface = mesh.surface.cpu().numpy()
+    rims = np.zeros(len(triangles), dtype=bool)
+    for s in np.unique(surface):
+        own = np.flatnonzero(surface == s)
+        if len(own) < 2 or np.abs(normals[own] - normals[own[0]]).max() > 1e-9:  # planar surfaces only
+            continue
+        a = triangles[own].reshape(-1)
+        b = triangles[own][:, [1, 2, 0]].reshape(-1)
+        keys = np.minimum(a, b) * len(vertices) + np.maximum(a, b)
+        unique, counts = np.unique(keys, return_counts=True)
+        boundary = np.isin(keys, unique[counts == 1])  # the directed edges on the boundary
+        a, b = a[boundary], b[boundary]
+        if len(a) == 0:
+            continue
+        # the boundary's loops: components of its vertices joined by its edges
+        ends = np.unique(np.concatenate([a, b]))
+        parent = np.arange(len(ends))
+        ia, ib = np.searchsorted(ends, a), np.searchsorted(ends, b)
+        changed = True
+        while changed:  # label propagation: each vertex takes the smallest label of its loop
+            low = np.minimum(parent[ia], parent[ib])
+            changed = bool((parent[ia] != low).any() or (parent[ib] != low).any())
+            np.minimum.at(parent, ia, low)
+            np.minimum.at(parent, ib, low)
+            parent = parent[parent]
+        loop = parent[ia]
+        signed = np.einsum("ij,j->i", np.cross(vertices[a], vertices[b]), normals[own[0]])
+        area = np.zeros(len(ends))
+        np.add.at(area, loop, signed)
+        hole_vertices = ends[np.isin(parent, np.flatnonzero(area < 0))]
+        rims[own] = np.isin(triangles[own], hole_vertices).any(1)
+    return rims
 
 
 def _each_alone(elements: np.ndarray, normals: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
