@@ -199,12 +199,14 @@ def _mean_plane_axes(members: np.ndarray, normals: np.ndarray, areas: np.ndarray
     return plane_axes(normal / np.linalg.norm(normal))
 
 
-def hole_rims(mesh: Mesh) -> np.ndarray:
+def hole_rims(mesh: Mesh, least: np.ndarray | None = None) -> np.ndarray:
     """(T,) bool: the elements of a planar surface with a corner on the rim of a hole in it:
     where something stands on the surface (a block's footprint, left out by contact
     meshing) or passes through it. A boundary loop is a hole where it runs clockwise seen
     from the surface's front (its signed area, sum (a x b) . n over its edges as the
-    triangles give them, is negative); the outline runs counter-clockwise."""
+    triangles give them, is negative); the outline runs counter-clockwise. With ``least``
+    (T,), only the holes whose rim is at least as long as the median of ``least`` over the
+    surface's elements."""
     triangles = mesh.triangles.cpu().numpy()
     vertices = mesh.vertices.cpu().numpy()
     normals = mesh.normals.cpu().numpy()
@@ -235,9 +237,11 @@ def hole_rims(mesh: Mesh) -> np.ndarray:
             parent = parent[parent]
         loop = parent[ia]
         signed = np.einsum("ij,j->i", np.cross(vertices[a], vertices[b]), normals[own[0]])
-        area = np.zeros(len(ends))
+        area, perimeter = np.zeros(len(ends)), np.zeros(len(ends))
         np.add.at(area, loop, signed)
-        hole_vertices = ends[np.isin(parent, np.flatnonzero(area < 0))]
+        np.add.at(perimeter, loop, np.linalg.norm(vertices[b] - vertices[a], axis=1))
+        shortest = 0.0 if least is None else float(np.median(least[own]))
+        hole_vertices = ends[np.isin(parent, np.flatnonzero((area < 0) & (perimeter >= shortest)))]
         rims[own] = np.isin(triangles[own], hole_vertices).any(1)
     return rims
 
