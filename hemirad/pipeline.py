@@ -562,7 +562,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
                  flux=photometry.flux_emissions(scene, mesh))
     gathered, seconds = estimate()  # the last round's, when refinement judged on the answer made one here
     interpolation = estimated_relative_error(final, result.radiosity, emission=result.emission,
-                                             reconstruction=scene.solver.reconstruction)
+                                             vertex_values=_shown_vertex_values(scene))
     stats.update(_estimate_stats(gathered, interpolation))
     stats["seconds"]["estimate"] = seconds  # the final mesh's estimate (each round's counts in "solve")
     if scene.sensors or scene.grids:
@@ -582,6 +582,12 @@ def _check_answer_refinement(scene: Scene) -> None:
         raise _key_error(scene, "refine.criterion", "a per-shot criterion when every element shoots "
                          "(solver.patch_size none)", ANSWER, "Refinement judged on the answer solves each "
                          "refined mesh by the initial mesh's patches; use solver.patch_size auto, or another criterion.")
+
+
+def _shown_vertex_values(scene: Scene) -> Callable[[Mesh, torch.Tensor], torch.Tensor]:
+    """How ``scene``'s pictures carry element values to their vertices (``solver.reconstruction``),
+    for the answer's ranking to judge what is shown."""
+    return lambda mesh, values: reconstructed_vertex_values(mesh, values, scene.solver.reconstruction)
 
 
 def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: "_CheckpointWriter | None",
@@ -608,7 +614,7 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
         gathered, _ = estimate()
         if gathered is None:
             return estimated_relative_error(solver.mesh, solver.state.radiosity, emission=solver.emission,
-                                            reconstruction=options.reconstruction)
+                                            vertex_values=_shown_vertex_values(scene))
         return gathered.relative_rms
 
     shot_done = progress
@@ -619,7 +625,7 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
                      lambda: solver.run(options.max_shots, options.unshot_fraction, shot_done),
                      report=None if saver is None else (lambda _: saver.save()), reports=reports,
                      patches_for=lambda: refined_patches(scene, solver), estimate=stopping_estimate,
-                     reconstruction=options.reconstruction)
+                     vertex_values=_shown_vertex_values(scene))
     return reports, refiner
 
 

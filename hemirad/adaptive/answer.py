@@ -6,9 +6,9 @@ they never see the smooth variation over large elements that dominates an image'
 and a threshold cannot be tuned to a mesh size. Here the judge is the solution itself:
 
 1. **Estimate.** An element's error is how far the displayed, Gouraud-shaded mesh (its
-   corners' vertex values, as ``output.reconstruction`` makes them for display) lies from a
-   linear model of the radiosity fitted to the element and its neighbours
-   (``element_errors``).
+   corners' vertex values, as the caller's display makes them: ``pipeline`` passes
+   ``output.reconstruction``'s) lies from a linear model of the radiosity fitted to the
+   element and its neighbours (``element_errors``).
 2. **Split** the elements of the largest squared error times area (their share of the
    image's squared error) first, as many as the round's element budget allows.
 3. **Solve the refined mesh afresh** (``patches_for``: with the initial mesh's patches, each
@@ -36,7 +36,9 @@ import torch
 from hemirad.core.colour import luminance
 from hemirad.core.fastops import flatnonzero
 from hemirad.geometry.mesh import Mesh
-from hemirad.output.reconstruction import reconstructed_vertex_values
+
+#: How a display carries (T,) element values to (V,) vertex values (``element_errors``).
+VertexValues = Callable[[Mesh, torch.Tensor], torch.Tensor]
 
 if TYPE_CHECKING:
     from hemirad.adaptive.refine import Refiner
@@ -60,26 +62,35 @@ def vertex_neighbours(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
     return i[i != j], j[i != j]
 
 
-def element_errors(mesh: Mesh, radiosity: torch.Tensor, reconstruction: str = "quadratic") -> torch.Tensor:
+def element_errors(mesh: Mesh, radiosity: torch.Tensor, vertex_values: VertexValues | None = None) -> torch.Tensor:
     """(T,) each element's estimated error: the RMS, over its corners, of how far the
     displayed (Gouraud) vertex values lie from a linear model of the radiosity around it.
 
     The model is the element's value with the gradient that best fits (least squares,
     weighted by area) its vertex-sharing neighbours' values at their centroids. Where the
     radiosity varies linearly inside a surface the shading follows it and the estimate is 0;
-    it grows with curvature and at shadow edges; with averaged vertex values
-    (``reconstruction`` mean) also at a surface's border, where a vertex can only average
-    the elements beside it and so misses the slope by about half an element.
+    it grows with curvature and at shadow edges; with averaged vertex values also at a
+    surface's border, where a vertex can only average the elements beside it and so misses
+    the slope by about half an element.
 
     Args:
         mesh: the elements; radiosity: (T, 3) the radiosity shown.
-        reconstruction: how the display makes its vertex values (``solver.reconstruction``).
-            Measured (answer from x2, two rounds): judging the quadratic display rather than
-            averaged values left relative MSE 0.80-0.83x on the Cornell box and office, the
-            same on floating.
+        vertex_values: how the display makes its vertex values from (T,) element values
+            (``pipeline`` passes ``output.reconstruction``'s, as ``solver.reconstruction``
+            asks); None: the area-weighted mean of the elements at each vertex, the paper's.
+            Measured (answer from x2, two rounds): judging the fitted values shown rather
+            than averaged ones left relative MSE 0.80-0.83x on the Cornell box and office,
+            the same on floating.
     """
     value = luminance(radiosity)  # (T,)
-    shown = reconstructed_vertex_values(mesh, value, reconstruction)[mesh.triangles]  # (T, 3) at each corner
+    if vertex_values is None:
+        corner_vertex = mesh.triangles.reshape(-1)
+        weight = mesh.areas.repeat_interleave(3)
+        sums = value.new_zeros(len(mesh.vertices)).index_add_(0, corner_vertex, weight * value.repeat_interleave(3))
+        weights = value.new_zeros(len(mesh.vertices)).index_add_(0, corner_vertex, weight)
+        shown = (sums / weights.clamp(min=1e-300))[mesh.triangles]  # (T, 3) the vertex values at each corner
+    else:
+        shown = vertex_values(mesh, value)[mesh.triangles]
     i, j = vertex_neighbours(mesh)
     centroids, normals = mesh.centroids, mesh.normals
     d = centroids.index_select(0, j) - centroids.index_select(0, i)  # (P, 3)
@@ -97,12 +108,12 @@ def element_errors(mesh: Mesh, radiosity: torch.Tensor, reconstruction: str = "q
 
 
 def estimated_relative_error(mesh: Mesh, radiosity: torch.Tensor, errors: torch.Tensor | None = None,
-                             emission: torch.Tensor | None = None, reconstruction: str = "quadratic") -> float:
+                             emission: torch.Tensor | None = None, vertex_values: VertexValues | None = None) -> float:
     """The interpolation estimate of the picture's relative RMS error: sqrt(sum A e^2 / sum A
     L^2) over the elements (``element_errors`` e, luminance L) that do not emit, given their
     ``emission`` (T, 3): a lamp's own luminance, hundreds of times its surroundings', would
     swamp the sum (it made this estimate read 2-9x low before it was left out)."""
-    e = element_errors(mesh, radiosity, reconstruction) if errors is None else errors
+    e = element_errors(mesh, radiosity, vertex_values) if errors is None else errors
     L = luminance(radiosity)
     weight = mesh.areas if emission is None else torch.where((emission > 0).any(1), 0.0, mesh.areas)
     return float(((weight * e * e).sum() / (weight * L * L).sum().clamp(min=1e-300)).sqrt())
@@ -202,7 +213,7 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
                      reports: list[RoundReport] | None = None,
                      patches_for: Callable[[], "PatchShooters"] | None = None,
                      estimate: Callable[[], float] | None = None,
-                     reconstruction: str = "quadratic") -> list[RoundReport]:
+                     vertex_values: VertexValues | None = None) -> list[RoundReport]:
     """Alternate shooting to the stopping rule (``shoot_on``) and refining where the answer
     is worst, until the estimated relative error is under ``tolerance``, the mesh has
     ``max_elements``, or ``rounds`` refinements were made. Each round may at most double
@@ -214,7 +225,8 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
     ``estimate()``: the solver's solution's estimated relative error, which the rounds stop
     by (``pipeline`` passes the final-gather estimate, ``gathered_error``); None: the
     interpolation estimate the elements are ranked by (``estimated_relative_error``).
-    ``reconstruction``: how the display makes the vertex values the ranking judges.
+    ``vertex_values``: how the display makes the vertex values the ranking judges
+    (``element_errors``).
     ``report`` is called after each round's split. Returns one report per round (the first
     is the unrefined solve), appended to ``reports`` when given: a run resumed from a
     checkpoint passes the rounds it had finished and goes on with the next (its solver
@@ -224,7 +236,7 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
         shoot_on()
         mesh = solver.mesh
         shown = solver.state.radiosity  # the ambient term is negligible once converged
-        errors = element_errors(mesh, shown, reconstruction)
+        errors = element_errors(mesh, shown, vertex_values)
         estimated = estimated_relative_error(mesh, shown, errors, solver.emission) if estimate is None else estimate()
         reports.append(RoundReport(index, mesh.num_elements, 0, estimated, solver.state.shots))
         room = (max_elements - mesh.num_elements) // (refiner.children - 1)

@@ -15,11 +15,13 @@ quadratic, not its value at the centroid: exact for any quadratic radiosity, bor
 included) and takes the fit's value at the vertex, in the spirit of the higher-order
 reconstructions of Salesin, Lischinski & DeRose (1992). Where light jumps (a shadow edge
 sharper than an element) a quadratic overshoots; the value is clamped into the range of the
-elements it was fitted to, so no new extreme, and no negative radiosity, appears.
+elements it was fitted to, widened only to the linear fit's value (which at a border rightly
+extrapolates past every element's mean) and never below zero.
 
-Measured on the bundled scenes converged (figures/accuracy_converged.md, relative MSE of
-the picture against path-traced references): the fit's error is 0.5-0.7x the average's on
-uniform meshes of 2,500 to 11,000 elements and 0.6-0.8x on meshes refined by the answer.
+Measured on the bundled scenes converged, the same solves shown both ways (relative MSE of
+the picture against the path-traced references): the fit's 0.44-0.52x the average's at 700
+to 3,100 elements; over the accuracy study (figures/accuracy_converged.md, against the
+release before) 0.56-0.72x on the finest uniform meshes (10,000-11,000 elements).
 """
 from __future__ import annotations
 
@@ -34,7 +36,8 @@ from hemirad.scene.model import RECONSTRUCTION_CHOICES
 #: The fit weighs an element by its area times exp(-r^2 / 2 s^2), r its centroid's distance
 #: from the vertex and s this many times the vertex's element size (the square root of the
 #: mean area of the elements at the vertex): the first ring counts most, the second steadies
-#: the curvature. Measured 0.5-2: 1 best or within 3% of the best on every bundled scene.
+#: the curvature. Measured at 1, 1.4, 2 and 18 on the bundled scenes (uniform meshes x1 and
+#: x0.5): 1 the best or within 1% of it on each.
 FIT_WIDTH = 1.0
 #: A fit whose normal matrix is worse conditioned than this falls back to a linear fit, then
 #: to the mean (a vertex with too few elements around it, e.g. a lone triangle's).
