@@ -11,6 +11,7 @@ import torch
 import hemirad
 from hemirad.core.fastops import flatnonzero
 from hemirad.adaptive.answer import element_errors, estimated_relative_error, refine_mesh, select_by_error
+from hemirad.output.display import vertex_values
 from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.adaptive.refine import Refiner
 from hemirad.cli import main
@@ -37,16 +38,16 @@ def field(mesh, f):
 
 def test_the_estimate_vanishes_for_a_constant_and_a_linear_field_and_finds_a_step_and_an_averaged_border():
     mesh = grid()
-    assert float(element_errors(mesh, field(mesh, lambda p: torch.tensor(2.0))).max()) < 1e-12
+    assert float(element_errors(mesh, field(mesh, lambda p: torch.tensor(2.0)), vertex_values).max()) < 1e-12
     linear = element_errors(mesh, field(mesh, lambda p: 1.0 + 3.0 * p[0] + 2.0 * p[2]), reconstructed_vertex_values)
     inside = ((mesh.corners[:, :, [0, 2]] > 0.13) & (mesh.corners[:, :, [0, 2]] < 0.87)).all(dim=(1, 2))
     assert float(linear.max()) < 1e-9  # the fitted vertex values follow the slope to the border
-    averaged = element_errors(mesh, field(mesh, lambda p: 1.0 + 3.0 * p[0] + 2.0 * p[2]))  # the paper's mean
+    averaged = element_errors(mesh, field(mesh, lambda p: 1.0 + 3.0 * p[0] + 2.0 * p[2]), vertex_values)  # the paper's mean
     assert float(averaged[inside].max()) < 1e-9
     # an averaged vertex on the border has only the elements beside it, missing half an element's slope
     assert float(averaged[~inside].max()) > 0.1
     fine = grid(element_size=0.0625)
-    step = element_errors(fine, field(fine, lambda p: 1.0 if p[0] < 0.5 else 2.0))
+    step = element_errors(fine, field(fine, lambda p: 1.0 if p[0] < 0.5 else 2.0), vertex_values)
     x = fine.corners[:, :, 0]
     near = ((x - 0.5).abs() < 0.13).any(dim=1)  # within two elements of the step
     far = ~near & ((x > 0.07) & (x < 0.93)).all(dim=1)
@@ -130,7 +131,8 @@ def test_power_balances_to_1e9_through_rounds_of_late_splits():
                                near_reach=3.0)
     refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
     try:
-        rounds = refine_by_answer(solver, refiner, 4 * T, 0.0, 2, lambda: solver.run(10_000, 1e-3))
+        rounds = refine_by_answer(solver, refiner, 4 * T, 0.0, 2, lambda: solver.run(10_000, 1e-3),
+                                  vertex_values=vertex_values)
         s = solver.state
         assert_power_balances(s, solver.areas, solver.reflectance, solver.emission, solver.emitted_power, rtol=1e-9)
         assert len(rounds) == 3 and rounds[-1].elements > T

@@ -62,7 +62,7 @@ def vertex_neighbours(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
     return i[i != j], j[i != j]
 
 
-def element_errors(mesh: Mesh, radiosity: torch.Tensor, vertex_values: VertexValues | None = None) -> torch.Tensor:
+def element_errors(mesh: Mesh, radiosity: torch.Tensor, vertex_values: VertexValues) -> torch.Tensor:
     """(T,) each element's estimated error: the RMS, over its corners, of how far the
     displayed (Gouraud) vertex values lie from a linear model of the radiosity around it.
 
@@ -77,20 +77,12 @@ def element_errors(mesh: Mesh, radiosity: torch.Tensor, vertex_values: VertexVal
         mesh: the elements; radiosity: (T, 3) the radiosity shown.
         vertex_values: how the display makes its vertex values from (T,) element values
             (``pipeline`` passes ``output.reconstruction``'s, as ``solver.reconstruction``
-            asks); None: the area-weighted mean of the elements at each vertex, the paper's.
-            Measured (answer from x2, two rounds): judging the fitted values shown rather
+            asks; ``display.vertex_values`` is the paper's area-weighted mean). Measured (answer from x2, two rounds): judging the fitted values shown rather
             than averaged ones left relative MSE 0.80-0.83x on the Cornell box and office,
             the same on floating.
     """
     value = luminance(radiosity)  # (T,)
-    if vertex_values is None:
-        corner_vertex = mesh.triangles.reshape(-1)
-        weight = mesh.areas.repeat_interleave(3)
-        sums = value.new_zeros(len(mesh.vertices)).index_add_(0, corner_vertex, weight * value.repeat_interleave(3))
-        weights = value.new_zeros(len(mesh.vertices)).index_add_(0, corner_vertex, weight)
-        shown = (sums / weights.clamp(min=1e-300))[mesh.triangles]  # (T, 3) the vertex values at each corner
-    else:
-        shown = vertex_values(mesh, value)[mesh.triangles]
+    shown = vertex_values(mesh, value)[mesh.triangles]  # (T, 3) the vertex values at each corner
     i, j = vertex_neighbours(mesh)
     centroids, normals = mesh.centroids, mesh.normals
     d = centroids.index_select(0, j) - centroids.index_select(0, i)  # (P, 3)
@@ -107,10 +99,11 @@ def element_errors(mesh: Mesh, radiosity: torch.Tensor, vertex_values: VertexVal
     return (model - shown).pow(2).mean(1).sqrt()
 
 
-def estimated_relative_error(mesh: Mesh, radiosity: torch.Tensor, errors: torch.Tensor | None = None,
-                             emission: torch.Tensor | None = None, vertex_values: VertexValues | None = None) -> float:
+def estimated_relative_error(mesh: Mesh, radiosity: torch.Tensor, vertex_values: VertexValues,
+                             errors: torch.Tensor | None = None, emission: torch.Tensor | None = None) -> float:
     """The interpolation estimate of the picture's relative RMS error: sqrt(sum A e^2 / sum A
-    L^2) over the elements (``element_errors`` e, luminance L) that do not emit, given their
+    L^2) over the elements (``element_errors`` e of the display's ``vertex_values``, or the
+    ``errors`` already found; luminance L) that do not emit, given their
     ``emission`` (T, 3): a lamp's own luminance, hundreds of times its surroundings', would
     swamp the sum (it made this estimate read 2-9x low before it was left out)."""
     e = element_errors(mesh, radiosity, vertex_values) if errors is None else errors
@@ -209,11 +202,11 @@ class RoundReport:
 
 def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elements: int, tolerance: float,
                      rounds: int, shoot_on: Callable[[], None],
+                     *, vertex_values: VertexValues,
                      report: Callable[[RoundReport], None] | None = None,
                      reports: list[RoundReport] | None = None,
                      patches_for: Callable[[], "PatchShooters"] | None = None,
-                     estimate: Callable[[], float] | None = None,
-                     vertex_values: VertexValues | None = None) -> list[RoundReport]:
+                     estimate: Callable[[], float] | None = None) -> list[RoundReport]:
     """Alternate shooting to the stopping rule (``shoot_on``) and refining where the answer
     is worst, until the estimated relative error is under ``tolerance``, the mesh has
     ``max_elements``, or ``rounds`` refinements were made. Each round may at most double
@@ -237,7 +230,8 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
         mesh = solver.mesh
         shown = solver.state.radiosity  # the ambient term is negligible once converged
         errors = element_errors(mesh, shown, vertex_values)
-        estimated = estimated_relative_error(mesh, shown, errors, solver.emission) if estimate is None else estimate()
+        estimated = (estimated_relative_error(mesh, shown, vertex_values, errors, solver.emission)
+                     if estimate is None else estimate())
         reports.append(RoundReport(index, mesh.num_elements, 0, estimated, solver.state.shots))
         room = (max_elements - mesh.num_elements) // (refiner.children - 1)
         count = min(room, int(ROUND_SHARE * mesh.num_elements))

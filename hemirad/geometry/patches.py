@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from hemirad.geometry.mesh import Mesh
 
@@ -225,23 +227,17 @@ def hole_rims(mesh: Mesh, least: np.ndarray | None = None) -> np.ndarray:
         if len(a) == 0:
             continue
         # the boundary's loops: components of its vertices joined by its edges
-        ends = np.unique(np.concatenate([a, b]))
-        parent = np.arange(len(ends))
-        ia, ib = np.searchsorted(ends, a), np.searchsorted(ends, b)
-        changed = True
-        while changed:  # label propagation: each vertex takes the smallest label of its loop
-            low = np.minimum(parent[ia], parent[ib])
-            changed = bool((parent[ia] != low).any() or (parent[ib] != low).any())
-            np.minimum.at(parent, ia, low)
-            np.minimum.at(parent, ib, low)
-            parent = parent[parent]
-        loop = parent[ia]
+        ends, index = np.unique(np.concatenate([a, b]), return_inverse=True)
+        ia, ib = index[:len(a)], index[len(a):]
+        graph = coo_matrix((np.ones(len(a)), (ia, ib)), shape=(len(ends), len(ends)))
+        count, label = connected_components(graph, directed=False)
+        loop = label[ia]
         signed = np.einsum("ij,j->i", np.cross(vertices[a], vertices[b]), normals[own[0]])
-        area, perimeter = np.zeros(len(ends)), np.zeros(len(ends))
+        area, perimeter = np.zeros(count), np.zeros(count)
         np.add.at(area, loop, signed)
         np.add.at(perimeter, loop, np.linalg.norm(vertices[b] - vertices[a], axis=1))
         shortest = 0.0 if least is None else float(np.median(least[own]))
-        hole_vertices = ends[np.isin(parent, np.flatnonzero((area < 0) & (perimeter >= shortest)))]
+        hole_vertices = ends[np.isin(label, np.flatnonzero((area < 0) & (perimeter >= shortest)))]
         rims[own] = np.isin(triangles[own], hole_vertices).any(1)
     return rims
 
