@@ -271,3 +271,31 @@ def test_the_scene_key():
         parse_scene({**base, "meshing": {"intersections": "off"}})
     with pytest.raises(SceneError, match="intersections"):
         parse_scene({**base, "meshing": {"intersection": True}})
+
+
+def test_no_cut_leaves_a_needle(tmp_path):
+    # A lamp's barrel (20 quads, corners to 5 decimals) pushed into its globe down to the
+    # globe's centre, as in the furnished room whose barrels were cut into needles (a cut's
+    # end within rounding of an edge, not on it: 5 units long, 6e-7 high) that a hemicube
+    # pixel over-counts by orders of magnitude. Every triangle is now thicker than the cut's
+    # tolerance; before, this globe left one needle, the room's own 64.
+    globe = trimesh.creation.icosphere(subdivisions=2, radius=2.5)
+    globe.vertices = np.round(globe.vertices + [-5.0, 5.0, 5.0], 5)
+    globe.export(tmp_path / "globe.ply")
+    angle = np.linspace(0.0, 2 * np.pi, 21)
+    rim = np.round(np.stack([-5 + 1.25 * np.cos(angle), 5 + 1.25 * np.sin(angle)], 1), 5).tolist()
+    barrel = [{"type": "quad", "material": "white", "name": f"barrel.q{k}",
+               "corners": [[x0, 10.0, z0], [x0, 5.0, z0], [x1, 5.0, z1], [x1, 10.0, z1]]}
+              for k, ((x1, z1), (x0, z0)) in enumerate(zip(rim[:-1], rim[1:]))]
+    scene = {"element_size": 1.0,
+             "materials": {"white": {"reflectance": 0.5}, "lamp": {"reflectance": 0.0, "emission": 5.0}},
+             "objects": [{"type": "room", "name": "room", "min": [-9, 0, 0], "max": [-1, 11, 10], "material": "white"},
+                         {"type": "mesh", "name": "globe", "file": "globe.ply", "material": "lamp"}, *barrel],
+             "camera": {"position": [-5, 5, 0.5], "look_at": [-5, 5, 5]}}
+    path = tmp_path / "scene.yaml"
+    path.write_text(yaml.safe_dump(scene))
+    mesh = build_mesh(hemirad.load_scene(path))
+    edges = mesh.corners - mesh.corners.roll(1, dims=1)
+    height = 2 * mesh.areas / edges.norm(dim=2).amax(1)
+    assert float(height.min()) > 1e-6 * 11.0  # CONTACT_TOLERANCE times the scene's size
+    assert sum(name.startswith("barrel") for name in mesh.surface_names) == 20
