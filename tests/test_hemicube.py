@@ -7,7 +7,9 @@ import hemirad
 from hemirad.geometry.split import split_triangles
 from hemirad.scene.meshing import build_mesh
 from hemirad.transport.hemicube import FACES, face_visibility
+from hemirad.assembly import make_solver
 from hemirad.transport.renderer import HemicubeRenderer
+from hemirad.transport.solver import ProgressiveSolver
 
 from patches import refined_solve
 
@@ -48,6 +50,50 @@ def test_refined_solve_is_the_same_with_and_without_culling():
     assert culled.mesh.num_elements > build_mesh(hemirad.load_scene("floating_coarse")).num_elements  # it split
     assert torch.equal(culled.mesh.triangles, full.mesh.triangles)
     assert torch.equal(culled.state.radiosity, full.state.radiosity)
+
+
+def test_a_prefetched_hemicube_is_the_one_rendered_when_asked_for():
+    # A sweep starts drawing the next patch's hemicube while it works on this one's near
+    # field: what it is later handed must be that placement's render, whatever was asked
+    # for in between, and count once.
+    mesh = build_mesh(hemirad.load_scene("cornell_box"))
+    renderer, direct = HemicubeRenderer(mesh, 64), HemicubeRenderer(mesh, 64)
+    try:
+        placements = [(mesh.centroids[k].numpy(), mesh.normals[k].numpy(), np.array([0.6, 0.3, 0.74]))
+                      for k in (5, 900, 2000)]
+        renderer.prefetch_at(*placements[0])
+        renderer.prefetch_at(*placements[1])  # one at a time: ignored
+        between = renderer.render_at(*placements[2])  # asked for another first
+        first = renderer.render_at(*placements[0])
+        second = renderer.render_at(*placements[1])
+        assert renderer.renders == 3
+        for got, placement in ((between, placements[2]), (first, placements[0]), (second, placements[1])):
+            want = direct.render_at(*placement)
+            assert torch.equal(got.element, want.element) and torch.equal(got.front, want.front)
+            assert torch.equal(got.form_factors, want.form_factors) and torch.equal(got.eye, want.eye)
+        with pytest.raises(RuntimeError):
+            renderer.hemicube.collect()  # nothing submitted
+    finally:
+        renderer.close()
+        direct.close()
+
+
+def test_a_sweep_gives_the_same_numbers_with_and_without_prefetching(monkeypatch):
+    def solve():
+        scene = hemirad.load_scene("floating_coarse")
+        scene.solver.resolution, scene.solver.unshot_fraction = 64, 1e-2
+        solver = make_solver(scene)
+        try:
+            solver.run(scene.solver.max_shots, scene.solver.unshot_fraction)
+        finally:
+            solver.close()
+        return solver
+    prefetched = solve()
+    monkeypatch.setattr(ProgressiveSolver, "_prefetch", lambda self, patch: None)
+    drawn_when_asked = solve()
+    assert prefetched.sweep_count > 1
+    assert torch.equal(prefetched.state.radiosity, drawn_when_asked.state.radiosity)
+    assert prefetched.renderer.renders == drawn_when_asked.renderer.renders
 
 
 def _local(points):

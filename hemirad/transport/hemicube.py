@@ -18,8 +18,11 @@ as in a full draw, and the item atlas is the one an unculled render gives, bit f
 """
 from __future__ import annotations
 
+import ctypes
+import functools
 import math
 import time
+from typing import Callable
 
 import moderngl
 import numpy as np
@@ -173,6 +176,7 @@ class Hemicube:
         self._vertices = np.zeros((0, 3))
         self._triangles = np.zeros((0, 3), dtype=np.uint32)
         self._pending = None
+        self._submitted = None  # (ids, ranges) of a render drawn and not yet read back
         self.num_triangles = self.drawn_triangles = 0
         self.profiler = profiler if profiler is not None else Profiler(("raster", "readback"))
 
@@ -224,6 +228,16 @@ class Hemicube:
             (3R, R) uint32 item atlas (see the module docstring); without culling, a buffer
             the next call overwrites.
         """
+        self.submit(eye, frame, near, far)
+        return self.collect()
+
+    def submit(self, eye: np.ndarray, frame: np.ndarray, near: float, far: float) -> None:
+        """The first half of ``render``: cull and draw, and let the driver start (``_flush``)
+        without waiting for it; ``collect`` then waits and reads the atlas back. Between the
+        two the caller's own work runs beside the rasteriser's threads (llvmpipe). One render
+        at a time: ``collect`` before the next ``submit``."""
+        if self._submitted is not None:
+            raise RuntimeError("a hemicube was submitted and not collected")
         start = time.perf_counter()
         if self._pending is not None:
             self._upload()
@@ -249,7 +263,18 @@ class Hemicube:
             self.program["first_item"].value = first
             ctx.viewport = viewport
             self._vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
-        ctx.finish()
+        _flush()
+        self._submitted = (ids, ranges)
+        self.profiler.add("raster", time.perf_counter() - start)
+
+    def collect(self) -> np.ndarray:
+        """Wait for the hemicube ``submit`` drew and read its atlas back (see ``render``)."""
+        if self._submitted is None:
+            raise RuntimeError("no hemicube was submitted")
+        ids, ranges = self._submitted
+        self._submitted = None
+        start = time.perf_counter()
+        self.ctx.finish()
         mid = time.perf_counter()
         self.fbo.read_into(self._drawn, components=1, dtype="u4")
         self.drawn_triangles = sum(count for _, count in ranges)
@@ -260,6 +285,26 @@ class Hemicube:
         self.profiler.add("raster", mid - start)
         self.profiler.add("readback", time.perf_counter() - mid)
         return items
+
+
+@functools.lru_cache(maxsize=1)
+def _gl_flush() -> Callable[[], None] | None:
+    """glFlush, which moderngl does not expose, from the process's GL dispatch library
+    (the one EGL's current context answers); None where there is none to load."""
+    for name in ("libOpenGL.so.0", "libGL.so.1"):
+        try:
+            return ctypes.CDLL(name).glFlush
+        except (OSError, AttributeError):
+            continue
+    return None
+
+
+def _flush() -> None:
+    """Hand the drawn commands to the driver now: llvmpipe rasterises a frame's bins only when
+    it is flushed, which ``finish`` (or a read) would otherwise do, waiting."""
+    flush = _gl_flush()
+    if flush is not None:
+        flush()
 
 
 def _write(buffer: moderngl.Buffer, data: np.ndarray) -> None:

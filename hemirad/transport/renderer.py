@@ -54,14 +54,18 @@ class HemicubeRenderer:
         self.near, self.far = clip_planes(mesh) if clip is None else clip
         self.renders = 0  # hemicubes rendered
         self.hemicube = Hemicube(resolution, cull, gpu=self.device.type == "cuda", profiler=self.profiler)
+        self._prefetched = None  # (key, eye, frame) of a hemicube submitted, not yet read back
+        self._ready = None  # (key, view) of one read back before it was asked for
         self.set_geometry(mesh)
 
     def set_geometry(self, mesh: Mesh) -> None:
         """Replace the mesh (after refinement); it must stay inside the first one's bounds."""
+        self._drop_prefetched()
         self.mesh = mesh
         self.hemicube.set_geometry(mesh.vertices, mesh.triangles)
 
     def close(self) -> None:
+        self._drop_prefetched()
         self.hemicube.release()
 
     def render(self, shooter: int) -> HemicubeView:
@@ -72,14 +76,39 @@ class HemicubeRenderer:
         return self.render_at(mesh.centroids[shooter].cpu().numpy(), mesh.normals[shooter].cpu().numpy(),
                               corners[1] - corners[0])
 
+    def prefetch_at(self, point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> None:
+        """Start drawing the hemicube ``render_at`` will be asked for with these arguments, and
+        return at once: the rasteriser works while the caller does (a sweep: the near field of
+        the node before). One at a time; ignored while another is pending or ready."""
+        if self._prefetched is not None or self._ready is not None:
+            return
+        eye, frame = self._placed(point, normal, tangent)
+        self.renders += 1
+        self.hemicube.submit(eye, frame, self.near, self.far)
+        self._prefetched = (_key(point, normal, tangent), eye, frame)
+
     def render_at(self, point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> HemicubeView:
         """Render the hemicube at ``point`` (3,) on a surface of unit ``normal`` (3,), its frame
-        turned by the in-plane ``tangent`` (3,), and sum its form factors to every element."""
-        mesh = self.mesh
-        frame = tangent_frame(normal, tangent)
-        eye = point + self.near * normal
+        turned by the in-plane ``tangent`` (3,), and sum its form factors to every element
+        (the one ``prefetch_at`` started, when asked for the same)."""
+        key = _key(point, normal, tangent)
+        if self._prefetched is not None:  # read it back: the atlas is needed for this one, or was asked for
+            prefetched, eye, frame = self._prefetched
+            self._prefetched = None
+            self._ready = (prefetched, self._view(self.hemicube.collect(), eye, frame))
+        if self._ready is not None and self._ready[0] == key:
+            view, self._ready = self._ready[1], None
+            return view
+        eye, frame = self._placed(point, normal, tangent)
         self.renders += 1
-        items = self.hemicube.render(eye, frame, self.near, self.far)
+        return self._view(self.hemicube.render(eye, frame, self.near, self.far), eye, frame)
+
+    def _placed(self, point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The hemicube's eye (3,), just off the surface, and its frame (3, 3)."""
+        return point + self.near * normal, tangent_frame(normal, tangent)
+
+    def _view(self, items: np.ndarray, eye: np.ndarray, frame: np.ndarray) -> HemicubeView:
+        mesh = self.mesh
         with self.profiler.phase("form_factors"):
             element, front = (x.to(self.device).reshape(-1) for x in decode_items(items))
             weight = self.weights.reshape(-1)
@@ -88,6 +117,18 @@ class HemicubeRenderer:
                             torch.from_numpy(np.ascontiguousarray(frame, dtype=np.float64)).to(self.device),
                             mesh.normals, mesh.centroids, F, self.hemicube.resolution)
 
+    def _drop_prefetched(self) -> None:
+        """Forget a prefetched hemicube (the mesh changes, or the renderer closes)."""
+        if self._prefetched is not None:
+            self.hemicube.collect()
+            self._prefetched = None
+        self._ready = None
+
     def from_element(self, shooter: int) -> torch.Tensor:
         """(T,) F_sj from element ``shooter`` to every element j."""
         return self.render(shooter).form_factors
+
+
+def _key(point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> bytes:
+    """What identifies a hemicube's placement, exactly."""
+    return b"".join(np.asarray(a, dtype=np.float64).tobytes() for a in (point, normal, tangent))

@@ -383,8 +383,12 @@ class ProgressiveSolver:
         if self._transport is None:
             self._transport = SweepTransport(self.mesh.num_elements, tree.num_nodes, len(tree.leaf), self.device)
         transport = self._transport
-        for patch in shooting.tolist():
-            for node in patches.cut(patch, self.render_and_keep, self._node_corners):
+        order = shooting.tolist()
+        for i, patch in enumerate(order):
+            nodes = patches.cut(patch, self.render_and_keep, self._node_corners)
+            if i + 1 < len(order):  # its hemicube drawn while this patch's near fields are made
+                self._prefetch(order[i + 1])
+            for node in nodes:
                 if node not in transport:
                     F = self.form_factors_of(node)
                     with self.profiler.phase("update"):
@@ -407,6 +411,14 @@ class ProgressiveSolver:
         state.shots += len(shooting)
         self.sweep_count += 1
         return int(torch.argmax(magnitude))
+
+    def _prefetch(self, patch: int) -> None:
+        """Start drawing the hemicube of ``patch``'s root if its cut will render it (the first
+        time it shoots), so that the rasteriser works while this thread does."""
+        if patch not in self.patches.cuts:
+            tree = self.patches.tree
+            root = int(tree.root[patch])
+            self.renderer.prefetch_at(tree.centroid[root].numpy(), tree.normal[root].numpy(), OFF_AXIS_TANGENT)
 
     def _shot_form_factors(self, shooter: int, shot_power: torch.Tensor) -> torch.Tensor:
         """(T,) F_sj of a shot of ``shot_power`` (3,) from ``shooter``: its kept or rendered row,
