@@ -143,7 +143,7 @@ def _without_inside(vertices: np.ndarray, triangles: np.ndarray, around: list[So
     what a cut's end found within rounding of an edge, not on it, leaves between them (the
     furnished room's barrels: 80 of them, 5 units long and 6e-7 high). Nothing can see one,
     and a hemicube pixel that happens to fall on it gives it thousands of times its share
-    (25 to 75 times the lamps' own radiosity, before); the crack it leaves is narrower than
+    (7 to 75 times the lamps' own radiosity, before); the crack it leaves is narrower than
     the tolerance."""
     corners = vertices[triangles]
     edges = corners - np.roll(corners, 1, axis=1)
