@@ -147,11 +147,11 @@ def solve(scene, settings: SolverSettings) -> tuple[Result, float]:
     finally:
         solver.close()
     seconds = time.perf_counter() - start
-    stats = {"elements": solver.mesh.num_elements, "initial_elements": mesh.num_elements,
-             "shots": state.shots, "unshot_fraction": solver.unshot_fraction,
-             "splits": refiner.splits if refiner else 0}
-    return Result(scene, solver.mesh, state.radiosity, state.unshot, solver.reflectance, solver.emission,
-                  stats), seconds
+    result = Result.of_solver(scene, solver)
+    result.stats = {"elements": solver.mesh.num_elements, "initial_elements": mesh.num_elements,
+                    "shots": state.shots, "unshot_fraction": solver.unshot_fraction,
+                    "splits": refiner.splits if refiner else 0}
+    return result, seconds
 
 
 @dataclass
