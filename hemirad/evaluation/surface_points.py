@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.mesh import Mesh, barycentric
 
 
 def elements_at(mesh: Mesh, points: torch.Tensor, normals: torch.Tensor, tolerance: float = 1e-4) -> torch.Tensor:
@@ -20,21 +20,14 @@ def elements_at(mesh: Mesh, points: torch.Tensor, normals: torch.Tensor, toleran
     element_normals = mesh.normals.to(points.dtype)  # (T, 3)
     extent = float((mesh.vertices.amax(0) - mesh.vertices.amin(0)).norm())
     eps = tolerance * extent
+    slack = 1e-6
     out = torch.full((len(points),), -1, dtype=torch.int64)
-    a, e1, e2 = corners[:, 0], corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-    # barycentric coordinates of each point in each triangle's plane (Gram matrix solve)
-    d11, d12, d22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
-    det = d11 * d22 - d12 * d12
     for i, (p, n) in enumerate(zip(points, normals)):
         facing = (element_normals @ n) > 0.9
-        offset = p - a
-        on_plane = (offset * element_normals).sum(1).abs() < eps
-        q1, q2 = (offset * e1).sum(1), (offset * e2).sum(1)
-        u = (d22 * q1 - d12 * q2) / det
-        v = (d11 * q2 - d12 * q1) / det
-        slack = 1e-6
-        inside = facing & on_plane & (u >= -slack) & (v >= -slack) & (u + v <= 1 + slack)
-        hits = torch.nonzero(inside).reshape(-1)
+        on_plane = ((p - corners[:, 0]) * element_normals).sum(1).abs() < eps
+        candidates = torch.nonzero(facing & on_plane).reshape(-1)
+        coordinates = barycentric(corners.index_select(0, candidates), p.expand(len(candidates), 3))
+        hits = candidates[(coordinates >= -slack).all(1)]
         if len(hits):
             out[i] = int(hits[0])
     return out
