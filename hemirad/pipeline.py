@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from hemirad import checkpoint as checkpoints
-from hemirad.adaptive.answer import RoundReport, estimated_relative_error, refine_by_answer
+from hemirad.adaptive.answer import RoundReport, VertexValues, estimated_relative_error, refine_by_answer
 from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver, refined_patches
 from hemirad.core.atomic import remove_stale_temporaries
@@ -584,7 +584,7 @@ def _check_answer_refinement(scene: Scene) -> None:
                          "refined mesh by the initial mesh's patches; use solver.patch_size auto, or another criterion.")
 
 
-def _shown_vertex_values(scene: Scene) -> Callable[[Mesh, torch.Tensor], torch.Tensor]:
+def _shown_vertex_values(scene: Scene) -> VertexValues:
     """How ``scene``'s pictures carry element values to their vertices (``solver.reconstruction``),
     for the answer's ranking to judge what is shown."""
     return lambda mesh, values: reconstructed_vertex_values(mesh, values, scene.solver.reconstruction)
@@ -599,6 +599,7 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
     returns the rounds and the refiner that split."""
     options, refine = scene.solver, scene.refine
     refiner = Refiner(dataclasses.replace(refine, criterion=ANSWER), solver.emission)
+    shown = _shown_vertex_values(scene)
     reports: list[RoundReport] = []
     if run is not None:
         try:
@@ -614,7 +615,7 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
         gathered, _ = estimate()
         if gathered is None:
             return estimated_relative_error(solver.mesh, solver.state.radiosity, emission=solver.emission,
-                                            vertex_values=_shown_vertex_values(scene))
+                                            vertex_values=shown)
         return gathered.relative_rms
 
     shot_done = progress
@@ -625,7 +626,7 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
                      lambda: solver.run(options.max_shots, options.unshot_fraction, shot_done),
                      report=None if saver is None else (lambda _: saver.save()), reports=reports,
                      patches_for=lambda: refined_patches(scene, solver), estimate=stopping_estimate,
-                     vertex_values=_shown_vertex_values(scene))
+                     vertex_values=shown)
     return reports, refiner
 
 

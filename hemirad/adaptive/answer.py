@@ -77,9 +77,10 @@ def element_errors(mesh: Mesh, radiosity: torch.Tensor, vertex_values: VertexVal
         mesh: the elements; radiosity: (T, 3) the radiosity shown.
         vertex_values: how the display makes its vertex values from (T,) element values
             (``pipeline`` passes ``output.reconstruction``'s, as ``solver.reconstruction``
-            asks; ``display.vertex_values`` is the paper's area-weighted mean). Measured (answer from x2, two rounds): judging the fitted values shown rather
-            than averaged ones left relative MSE 0.80-0.83x on the Cornell box and office,
-            the same on floating.
+            asks; ``display.vertex_values`` is the paper's area-weighted mean). Measured
+            (answer from x2, two rounds): judging the fitted values shown rather than
+            averaged ones left relative MSE 0.80-0.83x on the Cornell box and office, the
+            same on floating.
     """
     value = luminance(radiosity)  # (T,)
     shown = vertex_values(mesh, value)[mesh.triangles]  # (T, 3) the vertex values at each corner

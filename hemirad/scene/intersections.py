@@ -76,14 +76,15 @@ def _cut_plane(surface: SurfaceGeometry, frame: PlaneFrame, cutting: np.ndarray,
     region = surface_region(frame, surface.vertices, surface.triangles, tolerance) if len(segments) else None
     lines = _straightened(inner_lines(frame.to_plane(segments), region, tolerance), tolerance)
     if not lines:
-        return _without_inside(surface.vertices, surface.triangles, around, tolerance, unchanged_is_none=True)
+        return _without_inside_or_needles(surface.vertices, surface.triangles, around, tolerance,
+                                          unchanged_is_none=True)
     grid = frame.to_plane(surface.vertices)
     # a narrow quad's grid is thinner than the mesher's 28 degrees: ask no better of its cuts,
     # or the refinement chases the grid's own triangles through the whole surface
     own = min_angles(grid[surface.triangles]).min() * (1 - 1e-6)
     points, triangles = triangulate(region, lines, grid, surface.element_size, tolerance,
                                     min_angle=min(MIN_ANGLE, own))
-    return _without_inside(frame.lift(points), triangles, around, tolerance)
+    return _without_inside_or_needles(frame.lift(points), triangles, around, tolerance)
 
 
 def _cut_in_place(surface: SurfaceGeometry, corners: np.ndarray, cutting: np.ndarray, around: list[Solid],
@@ -113,10 +114,11 @@ def _cut_in_place(surface: SurfaceGeometry, corners: np.ndarray, cutting: np.nda
         added_triangles.append(triangles + count)
         count += len(points)
     if not added_points:
-        return _without_inside(vertices, surface.triangles, around, tolerance, unchanged_is_none=True)
+        return _without_inside_or_needles(vertices, surface.triangles, around, tolerance, unchanged_is_none=True)
     vertices = np.concatenate([vertices, *added_points])
     triangles = np.concatenate([surface.triangles[kept], *added_triangles])
-    return _without_inside(*_weld(vertices, triangles, len(surface.vertices), tolerance), around, tolerance)
+    return _without_inside_or_needles(*_weld(vertices, triangles, len(surface.vertices), tolerance), around,
+                                      tolerance)
 
 
 def _straightened(lines: list[np.ndarray], tolerance: float) -> list[np.ndarray]:
@@ -134,7 +136,7 @@ def _straightened(lines: list[np.ndarray], tolerance: float) -> list[np.ndarray]
     return pieces
 
 
-def _without_inside(vertices: np.ndarray, triangles: np.ndarray, around: list[Solid], tolerance: float,
+def _without_inside_or_needles(vertices: np.ndarray, triangles: np.ndarray, around: list[Solid], tolerance: float,
                     unchanged_is_none: bool = False) -> Meshed | None:
     """The triangles whose centroids no solid of ``around`` holds, and that are not needles,
     with the vertices they use; None when ``unchanged_is_none`` and every triangle stays.
@@ -165,7 +167,7 @@ def _weld(vertices: np.ndarray, triangles: np.ndarray, first_added: int, toleran
     """Vertices from index ``first_added`` on merged into any vertex within ``tolerance``
     that comes before them: a cut's end on an edge two cut triangles share is found from
     each (in its own plane) to within rounding, and must be one vertex of the surface.
-    Triangles left with a corner twice are dropped (``_without_inside`` drops them as needles)."""
+    Triangles left with a corner twice are dropped (``_without_inside_or_needles`` drops them as needles)."""
     target = np.arange(len(vertices))
     for i, j in sorted(cKDTree(vertices).query_pairs(tolerance)):  # i < j
         if j >= first_added:

@@ -10,6 +10,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
+import numpy as np
 import torch
 
 from hemirad.core.fastops import flatnonzero, row_sums
@@ -246,8 +247,13 @@ class ProgressiveSolver:
         trees) sees on the current mesh, with F_sj."""
         if self.patches is None:
             return self.renderer.render(shooter)
+        return self.renderer.render_at(*self._placement(shooter))
+
+    def _placement(self, node: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where a node of the patches' trees renders its hemicube: ``render_at``'s point,
+        normal and tangent."""
         tree = self.patches.tree
-        return self.renderer.render_at(tree.centroid[shooter].numpy(), tree.normal[shooter].numpy(), OFF_AXIS_TANGENT)
+        return tree.centroid[node].numpy(), tree.normal[node].numpy(), OFF_AXIS_TANGENT
 
     def shooter_elements(self, shooter: int) -> int | torch.Tensor:
         """The elements ``shooter`` is: the element itself, or (K,) a node's elements."""
@@ -416,9 +422,7 @@ class ProgressiveSolver:
         """Start drawing the hemicube of ``patch``'s root if its cut will render it (the first
         time it shoots), so that the rasteriser works while this thread does."""
         if patch not in self.patches.cuts:
-            tree = self.patches.tree
-            root = int(tree.root[patch])
-            self.renderer.prefetch_at(tree.centroid[root].numpy(), tree.normal[root].numpy(), OFF_AXIS_TANGENT)
+            self.renderer.prefetch_at(*self._placement(int(self.patches.tree.root[patch])))
 
     def _shot_form_factors(self, shooter: int, shot_power: torch.Tensor) -> torch.Tensor:
         """(T,) F_sj of a shot of ``shot_power`` (3,) from ``shooter``: its kept or rendered row,
