@@ -53,16 +53,17 @@ def test_refined_solve_is_the_same_with_and_without_culling():
 
 
 def test_a_prefetched_hemicube_is_the_one_rendered_when_asked_for():
-    # A sweep starts drawing the next patch's hemicube while it works on this one's near
-    # field: what it is later handed must be that placement's render, whatever was asked
-    # for in between, and count once.
+    # A sweep starts drawing the next patch's hemicube before it asks for this one's (read
+    # back then, decoded when asked for): what it is later handed must be that placement's
+    # render, whatever was asked for in between, and count once.
     mesh = build_mesh(hemirad.load_scene("cornell_box"))
     renderer, direct = HemicubeRenderer(mesh, 64), HemicubeRenderer(mesh, 64)
     try:
         placements = [(mesh.centroids[k].numpy(), mesh.normals[k].numpy(), np.array([0.6, 0.3, 0.74]))
                       for k in (5, 900, 2000)]
         renderer.prefetch_at(*placements[0])
-        renderer.prefetch_at(*placements[1])  # one at a time: ignored
+        renderer.prefetch_at(*placements[1])  # the first read back to draw this one
+        renderer.prefetch_at(*placements[1])  # pending already: ignored
         between = renderer.render_at(*placements[2])  # asked for another first
         first = renderer.render_at(*placements[0])
         second = renderer.render_at(*placements[1])

@@ -94,11 +94,15 @@ def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: tor
     hemicube can see), then Lambert's formula is summed over the clipped polygon's edges.
 
     Args:
-        point: (3,), or (T, 1, 3) a point per triangle; normal: (3,) unit; triangles: (T, 3, 3).
+        point: (3,), or (T, 1, 3) a point per triangle; normal: (3,) unit, or (T, 1, 3) one
+            per triangle; triangles: (T, 3, 3).
     Returns:
         (T,) form factors, >= 0.
     """
-    d = (triangles - point) @ normal  # (T, 3) heights above the tangent plane
+    def along_normal(x: torch.Tensor) -> torch.Tensor:  # (T, m, 3) -> (T, m)
+        return x @ normal if normal.dim() == 1 else (x * normal).sum(-1)
+
+    d = along_normal(triangles - point)  # (T, 3) heights above the tangent plane
     T = len(triangles)
     # A triangle wholly above needs no clipping: its slots as the clipping would leave them
     # (the corners, then the unused cuts, each its edge's start: they are masked out below).
@@ -115,7 +119,7 @@ def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: tor
     cross_norm = cross.norm(dim=-1)
     theta = torch.atan2(cross_norm, (R * R_next).sum(-1))
     edge = (slot < count) & (cross_norm > 0)
-    term = torch.where(edge, theta * (cross @ normal) / torch.where(edge, cross_norm, torch.ones_like(cross_norm)),
+    term = torch.where(edge, theta * along_normal(cross) / torch.where(edge, cross_norm, torch.ones_like(cross_norm)),
                        torch.zeros_like(theta))
     return (term.sum(1) / (2 * math.pi)).abs()
 

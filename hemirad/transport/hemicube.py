@@ -225,8 +225,7 @@ class Hemicube:
             frame: (3, 3) rows t, b, n of the local frame (``tangent_frame``), n the normal.
             near, far: clip distances; everything between them along each face's axis is seen.
         Returns:
-            (3R, R) uint32 item atlas (see the module docstring); without culling, a buffer
-            the next call overwrites.
+            (3R, R) uint32 item atlas (see the module docstring).
         """
         self.submit(eye, frame, near, far)
         return self.collect()
@@ -282,6 +281,8 @@ class Hemicube:
         if self.cull:  # position in the drawn list -> triangle id, keeping the back-face bit
             lookup = np.concatenate([[0], ids + 1]).astype(np.uint32)
             items = lookup[items & (BACK_FACE_BIT - 1)] | (items & BACK_FACE_BIT)
+        else:
+            items = items.copy()  # the caller's: the next read overwrites the buffer
         self.profiler.add("raster", mid - start)
         self.profiler.add("readback", time.perf_counter() - mid)
         return items

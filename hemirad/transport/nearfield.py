@@ -48,14 +48,17 @@ How much of a source's light its near receivers take (``TOTALS``):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Generator, Sequence, TypeVar
 
 import torch
 
-from hemirad.core.fastops import flatnonzero
+from hemirad.core.fastops import flatnonzero, row_sums
 from hemirad.geometry.analytic import point_to_triangles, triangle_to_triangles
 from hemirad.geometry.mesh import Mesh
 from hemirad.transport.smallreceivers import visible_form_factors
 from hemirad.transport.view import HemicubeView
+
+Value = TypeVar("Value")
 
 #: How a source's light is split between its near receivers and the rest (module docstring).
 TOTALS = ("hemicube", "area")
@@ -65,6 +68,8 @@ CONTOUR_GAP = 1.0
 #: Gauss points along a source edge (``triangle_to_triangles``: about 0.2% of the factor for
 #: triangles that touch, 0.01% for those apart by half a side).
 GAUSS_POINTS = 4
+#: Contour integrals done between two pauses of ``near_field_steps`` (about 4 ms of work).
+CONTOUR_CHUNK = 1024
 #: A near receiver counts as wholly visible from G when all its level^2 samples are.
 VISIBILITY_LEVEL = 4
 #: With ``area`` totals, the most G's factors to the far receivers are scaled by for a source.
@@ -89,6 +94,21 @@ class NearReceivers:
     far_scale: torch.Tensor
 
 
+@dataclass(frozen=True)
+class NearShooter:
+    """A shooter whose near field is wanted: its (K,) ``members`` (elements), (k, 3, 3)
+    ``sources`` (the triangles its power is spread over: its initial elements), the ``point``
+    G (3,) it shoots from along unit ``normal`` (3,), what its hemicube there saw, ``view``,
+    and the row it shoots with, ``form_factors`` (T,)."""
+
+    members: torch.Tensor
+    sources: torch.Tensor
+    point: torch.Tensor
+    normal: torch.Tensor
+    view: HemicubeView
+    form_factors: torch.Tensor
+
+
 def _sides_centroids_radii(corners: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(m,) sides sqrt(2 A), (m, 3) centroids and (m,) radii (the farthest corner from the
     centroid) of (m, 3, 3) triangles."""
@@ -98,102 +118,178 @@ def _sides_centroids_radii(corners: torch.Tensor) -> tuple[torch.Tensor, torch.T
     return (2.0 * area).sqrt(), centroid, torch.linalg.vector_norm(corners - centroid[:, None], dim=2).amax(1)
 
 
-def area_factors(sources: torch.Tensor, normal: torch.Tensor, receivers: torch.Tensor,
-                 receiver_normals: torch.Tensor, point: torch.Tensor, from_point: torch.Tensor) -> torch.Tensor:
-    """(k, n) the unoccluded form factors from the (k, 3, 3) ``sources``, shooting along unit
-    ``normal`` (3,), to the (n, 3, 3) ``receivers`` of (n, 3) unit ``receiver_normals``, given
-    Lambert's factors ``from_point`` (n,) from ``point`` (3,), G.
+def area_factor_steps(sources: torch.Tensor, receivers: torch.Tensor, receiver_normals: torch.Tensor,
+                      points: torch.Tensor, normals: torch.Tensor, from_point: torch.Tensor, source: torch.Tensor,
+                      receiver: torch.Tensor) -> Generator[None, None, torch.Tensor]:
+    """(C,) per pair of a source (``source`` (C,) into the (K, 3, 3) ``sources``) and a
+    receiver (``receiver`` (C,) into the (N, 3, 3) ``receivers`` of unit ``receiver_normals``
+    (N, 3)), the unoccluded form factor from the source, shooting along its shooter's unit
+    ``normals`` (N, 3), to the receiver, given the receiver's Lambert factor ``from_point``
+    (N,) from its shooter's point G, ``points`` (N, 3) (per receiver: a receiver near two
+    shooters comes twice). A generator (``near_field_steps``): it pauses between chunks of
+    ``CONTOUR_CHUNK`` contour integrals, and returns the factors.
 
     Pairs closer than ``CONTOUR_GAP`` source sides get the area-to-area factor. The others
     get G's factor times the ratio of the kernels cos_s cos_j / r^2 from the source's
     centroid and from G to the receiver's centroid, where both cosines seen from G exceed
     0.1; where they do not (a receiver near G's horizon, or seen edge-on), the area-to-area
     factor too."""
-    k, n = len(sources), len(receivers)
-    if k == 0 or n == 0:
-        return sources.new_zeros(k, n)
-    side, centre, radius = _sides_centroids_radii(sources)
-    _, receiver_centre, receiver_radius = _sides_centroids_radii(receivers)
-    gap = (torch.cdist(centre, receiver_centre) - radius[:, None] - receiver_radius[None, :]).clamp(min=0.0)
-    to_receiver = receiver_centre - point  # (n, 3)
+    if len(source) == 0:
+        return from_point.new_zeros(0)
+    side, centre, radius = _sides_centroids_radii(sources)  # (K,) ...
+    _, receiver_centre, receiver_radius = _sides_centroids_radii(receivers)  # (N,) ...
+    to_receiver = receiver_centre - points  # (N, 3) from G
     distance = torch.linalg.vector_norm(to_receiver, dim=1)
-    cos_g = to_receiver @ normal / distance
-    cos_j = -(to_receiver * receiver_normals).sum(1) / distance
-    steady = (cos_g > 0.1) & (cos_j > 0.1)  # (n,)
-    d = receiver_centre[None] - centre[:, None]  # (k, n, 3) from each source's centroid
-    d2 = d.square().sum(-1)
-    kernel = (d @ normal).clamp(min=0.0) * (-(d * receiver_normals[None]).sum(-1)).clamp(min=0.0) / d2.square()
+    cos_g = row_sums(to_receiver * normals) / distance
+    cos_j = -row_sums(to_receiver * receiver_normals) / distance
+    steady = (cos_g > 0.1) & (cos_j > 0.1)  # (N,)
     kernel_g = torch.where(steady, cos_g * cos_j / distance.square(), 1.0)
-    out = from_point[None] * kernel / kernel_g[None]
-    s, r = torch.nonzero((gap < CONTOUR_GAP * side[:, None]) | ~steady[None], as_tuple=True)
-    if len(s):
-        out[s, r] = triangle_to_triangles(sources.index_select(0, s), receivers.index_select(0, r), GAUSS_POINTS)
+    d = receiver_centre.index_select(0, receiver) - centre.index_select(0, source)  # (C, 3) from the source's centroid
+    d2 = row_sums(d * d)
+    gap = (d2.sqrt() - radius.index_select(0, source) - receiver_radius.index_select(0, receiver)).clamp(min=0.0)
+    kernel = (row_sums(d * normals.index_select(0, receiver)).clamp(min=0.0)
+              * (-row_sums(d * receiver_normals.index_select(0, receiver))).clamp(min=0.0) / d2.square())
+    out = (from_point / kernel_g).index_select(0, receiver) * kernel
+    close = flatnonzero((gap < CONTOUR_GAP * side.index_select(0, source)) | ~steady.index_select(0, receiver))
+    for chunk in close.split(CONTOUR_CHUNK) if len(close) else ():  # (an empty tensor splits into one empty part)
+        yield
+        out.index_copy_(0, chunk, triangle_to_triangles(sources.index_select(0, source.index_select(0, chunk)),
+                                                        receivers.index_select(0, receiver.index_select(0, chunk)),
+                                                        GAUSS_POINTS))
     return out
 
 
-def visibility(view: HemicubeView, rows: torch.Tensor, corners: torch.Tensor, areas: torch.Tensor,
-               form_factors: torch.Tensor, from_point: torch.Tensor) -> torch.Tensor:
+def visibility(views: Sequence[HemicubeView], view_of: torch.Tensor, rows: torch.Tensor, corners: torch.Tensor,
+               areas: torch.Tensor, ratio: torch.Tensor) -> torch.Tensor:
     """(n,) the share of each receiver ``rows`` (n,), of (n, 3, 3) ``corners`` and (n,)
-    ``areas``, that the eye of ``view`` sees: 1 where all its samples are visible, else its
-    ``form_factors`` (n,) over Lambert's ``from_point`` (n,), at most 1."""
-    ratio = torch.where(from_point > 0, form_factors / from_point.clamp(min=1e-300), 0.0).clamp(max=1.0)
+    ``areas``, that the eye of its view ``views[view_of]`` sees: 1 where all its samples are
+    visible, else ``ratio`` (n,), its hemicube factor over Lambert's from the eye, at most 1."""
     doubtful = flatnonzero(ratio < 1.0)  # the others are 1 either way
     if len(doubtful) == 0:
         return ratio
     levels = torch.full((len(doubtful),), VISIBILITY_LEVEL, dtype=torch.int64, device=rows.device)
-    visible, unoccluded = visible_form_factors(view, rows.index_select(0, doubtful), corners.index_select(0, doubtful),
-                                               areas.index_select(0, doubtful), levels)
+    visible, unoccluded = visible_form_factors(views, view_of.index_select(0, doubtful), rows.index_select(0, doubtful),
+                                               corners.index_select(0, doubtful), areas.index_select(0, doubtful), levels)
     # equal sums: no sample hidden
     return ratio.index_copy(0, doubtful, torch.where(visible >= unoccluded, 1.0, ratio.index_select(0, doubtful)))
 
 
-def near_receivers(mesh: Mesh, members: torch.Tensor, sources: torch.Tensor, point: torch.Tensor,
-                   normal: torch.Tensor, view: HemicubeView, form_factors: torch.Tensor, reach: float,
-                   totals: str = "hemicube", among: torch.Tensor | None = None) -> NearReceivers:
-    """The near receivers of the shooter whose (K,) ``members`` shoot from ``point`` (3,)
-    along ``normal`` (3,), and the weights of its (k, 3, 3) ``sources`` (the triangles its
-    power is spread over: its initial elements), given what its hemicube saw, ``view``, the
-    row it shoots with, ``form_factors`` (T,), and how the totals are found (``TOTALS``).
-    With ``among`` (R,), only those among these elements, unscaled (``far_scale`` 1: the
+def _segments(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N,) the segment of each of sum(counts) items laid out segment after segment, and (N,)
+    its position within its segment, for (B,) ``counts``."""
+    segment = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
+    start = torch.cumsum(counts, 0) - counts
+    return segment, torch.arange(len(segment), device=counts.device) - start.index_select(0, segment)
+
+
+def near_fields(mesh: Mesh, shooters: Sequence[NearShooter], reach: float, totals: str = "hemicube",
+                among: torch.Tensor | None = None) -> list[NearReceivers]:
+    """The near receivers of each of the B ``shooters`` (those within ``reach`` times its
+    radius of its point that its hemicube sees, not its own members) and its sources'
+    weights to them, with the totals found as ``totals`` says (``TOTALS``).
+
+    All B are found together: a shooter's near field is a few hundred small pairs, whose
+    cost one at a time was the torch calls' (about 120 a shooter), not their arithmetic
+    (furnished room, hemicube 128: 3.0 ms a shooter alone, 1.7 in eights, 1.4 in 32s).
+
+    With ``among`` (R,), only receivers among these elements, unscaled (``far_scale`` 1: the
     caller scales what it needs)."""
-    radius = float(torch.linalg.vector_norm(mesh.corners_of(members).reshape(-1, 3) - point, dim=1).max())
-    centroids, seen_from_g = mesh.centroids, form_factors > 0  # what G does not see stays unseen (occluded, or behind)
+    return run_to_end(near_field_steps(mesh, shooters, reach, totals, among))
+
+
+def run_to_end(steps: Generator[None, None, Value]) -> Value:
+    """Run a generator of steps (``near_field_steps``) to its end; its return value."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
+
+
+def near_field_steps(mesh: Mesh, shooters: Sequence[NearShooter], reach: float, totals: str = "hemicube",
+                     among: torch.Tensor | None = None) -> Generator[None, None, list[NearReceivers]]:
+    """``near_fields`` as a generator that pauses (yields) between parts of the work of a few
+    milliseconds each, and returns its list: a caller with other work to wait on (a sweep,
+    its next hemicubes drawn by the rasteriser's threads) does a part between waits. The
+    numbers are the same however it is run."""
+    if totals not in TOTALS:
+        raise ValueError(f"totals must be one of {', '.join(TOTALS)}, not {totals!r}")
+    device, B = mesh.centroids.device, len(shooters)
+    points = torch.stack([s.point for s in shooters])  # (B, 3)
+    normals = torch.stack([s.normal for s in shooters])
+    form_factors = torch.stack([s.form_factors for s in shooters])  # (B, T)
+    members = torch.cat([s.members for s in shooters])
+    member_of = torch.repeat_interleave(torch.arange(B, device=device),
+                                        torch.tensor([len(s.members) for s in shooters], device=device))
+    reached = torch.linalg.vector_norm(mesh.corners_of(members) - points.index_select(0, member_of)[:, None], dim=2)
+    radius = points.new_zeros(B).scatter_reduce_(0, member_of, reached.amax(1), "amax")
+    # what G does not see stays unseen (occluded, or behind)
+    near = (torch.linalg.vector_norm(mesh.centroids[None] - points[:, None], dim=2) < reach * radius[:, None]) & (
+        form_factors > 0)  # (B, T)
+    near[member_of, members] = False
     if among is not None:
-        centroids, seen_from_g = centroids.index_select(0, among), seen_from_g.index_select(0, among)
-    near = (torch.linalg.vector_norm(centroids - point, dim=1) < reach * radius) & seen_from_g
-    rows = flatnonzero(near) if among is None else among[near]
-    rows = rows[~torch.isin(rows, members)]
-    corners = mesh.corners_of(rows)  # (n, 3, 3)
-    F = form_factors.index_select(0, rows)
-    from_point = point_to_triangles(point, normal, corners)  # (n,) Lambert's from G
-    seen = visibility(view, rows, corners, mesh.areas.index_select(0, rows), F, from_point)
-    weights = area_factors(sources, normal, corners, mesh.normals.index_select(0, rows), point,
-                           from_point) * seen[None, :]
-    far_scale = weights.new_ones(len(sources))
-    if among is not None or len(rows) == 0:
-        return NearReceivers(rows, weights, far_scale)
-    near_sums = weights.sum(1)  # (k,)
+        near &= torch.zeros_like(near[0]).index_fill_(0, among, True)[None]
+    shooter_of, rows = torch.nonzero(near, as_tuple=True)  # (N,) each, shooter by shooter
+    counts = torch.bincount(shooter_of, minlength=B)  # (B,) n_b
+    corners = mesh.corners_of(rows)  # (N, 3, 3)
+    point_of, normal_of = points.index_select(0, shooter_of), normals.index_select(0, shooter_of)
+    F = form_factors[shooter_of, rows]  # (N,)
+    from_point = point_to_triangles(point_of[:, None], normal_of[:, None], corners)  # Lambert's from G
+    seen = torch.where(from_point > 0, F / from_point.clamp(min=1e-300), 0.0).clamp(max=1.0)
+    yield
+    seen = visibility([s.view for s in shooters], shooter_of, rows, corners, mesh.areas.index_select(0, rows), seen)
+    yield
+
+    # Every shooter's sources with every one of its near receivers, source by source.
+    sources = torch.cat([s.sources for s in shooters])  # (K, 3, 3)
+    k = torch.tensor([len(s.sources) for s in shooters], device=device)  # (B,)
+    source_of = torch.repeat_interleave(torch.arange(B, device=device), k)  # (K,)
+    pair_of, position = _segments(k * counts)  # the shooter of each pair
+    receiver_start = torch.cumsum(counts, 0) - counts
+    n_of = counts.index_select(0, pair_of)
+    pair_source = (torch.cumsum(k, 0) - k).index_select(0, pair_of) + position // n_of.clamp(min=1)  # (C,)
+    pair_receiver = receiver_start.index_select(0, pair_of) + position % n_of.clamp(min=1)  # (C,) a near pair
+    weights = (yield from area_factor_steps(sources, corners, mesh.normals.index_select(0, rows), point_of, normal_of,
+                                            from_point, pair_source, pair_receiver)) * seen.index_select(0, pair_receiver)
+    far_scale = sources.new_ones(len(sources))
+    if among is None:
+        weights, far_scale = _totals(weights, pair_source, pair_receiver, source_of, shooter_of, F, form_factors,
+                                     near, totals)
+    sizes = counts.tolist()
+    return [NearReceivers(row, w.reshape(len(f), n), f) for row, w, f, n in zip(
+        rows.split(sizes), weights.split((k * counts).tolist()), far_scale.split(k.tolist()), sizes)]
+
+
+def _totals(weights: torch.Tensor, pair_source: torch.Tensor, pair_receiver: torch.Tensor, source_of: torch.Tensor,
+            shooter_of: torch.Tensor, F: torch.Tensor, form_factors: torch.Tensor, near: torch.Tensor,
+            totals: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """The (C,) source-receiver ``weights`` (of each pair, its source (C,) and near pair (C,))
+    scaled to the totals ``totals`` asks for, and (K,) each source's ``far_scale``; per near
+    pair (N,) its shooter and G's factor ``F``; per source (K,) its shooter; per shooter the
+    (B, T) rows ``form_factors`` and ``near`` mask."""
+    K, B = len(source_of), len(form_factors)
+    near_sums = weights.new_zeros(K).index_add_(0, pair_source, weights)  # (K,) a source's total
+    far_scale = weights.new_ones(K)
     if totals == "hemicube":
         # G's total over the near receivers, shared as the source sends it (a source that
         # reaches none of them: G's numbers)
+        near_total = F.new_zeros(B).index_add_(0, shooter_of, F).index_select(0, source_of)
         lit = near_sums > 0
-        weights = torch.where(lit[:, None], weights * (F.sum() / torch.where(lit, near_sums, 1.0))[:, None],
-                              F[None, :].expand_as(weights))
-        return NearReceivers(rows, weights, far_scale)
-    if totals != "area":
-        raise ValueError(f"totals must be one of {', '.join(TOTALS)}, not {totals!r}")
-    far = form_factors.index_fill(0, rows, 0.0).sum()  # G's factors to the others (a sum: no rounding)
-    rest = far + (1.0 - form_factors.sum()).clamp(min=0.0)  # and what G's hemicube sees nothing in
-    if float(rest) > REST_FLOOR:
-        wanted = (1.0 - near_sums).clamp(min=0.0) / rest
-        # what the source sees and G does not is in no receiver's row: would it land on a few
-        # far receivers, the near ones take the excess
-        far_scale = wanted.clamp(max=FAR_SCALE_MAX)
-        extra = (wanted - far_scale) * far
-        weights = weights * (1.0 + extra / near_sums.clamp(min=1e-300))[:, None]
-        near_sums = near_sums + extra
-    weights = weights / near_sums.clamp(min=1.0)[:, None]  # at most the whole hemisphere (rounding)
-    return NearReceivers(rows, weights, far_scale)
+        scale = (near_total / torch.where(lit, near_sums, 1.0)).index_select(0, pair_source)
+        return torch.where(lit.index_select(0, pair_source), weights * scale, F.index_select(0, pair_receiver)), far_scale
+    far = torch.where(near, 0.0, form_factors).sum(1)  # G's factors to the others (a sum: no rounding)
+    rest = (far + (1.0 - form_factors.sum(1)).clamp(min=0.0)).index_select(0, source_of)  # and what G sees nothing in
+    far = far.index_select(0, source_of)
+    # a shooter with no near receivers keeps G's row as it is
+    scaled = (rest > REST_FLOOR) & near.any(1).index_select(0, source_of)
+    wanted = torch.where(scaled, (1.0 - near_sums).clamp(min=0.0) / torch.where(scaled, rest, 1.0), 1.0)
+    # what the source sees and G does not is in no receiver's row: would it land on a few far
+    # receivers, the near ones take the excess
+    far_scale = wanted.clamp(max=FAR_SCALE_MAX)
+    extra = (wanted - far_scale) * far
+    weights = weights * (1.0 + extra / near_sums.clamp(min=1e-300)).index_select(0, pair_source)
+    near_sums = near_sums + extra
+    return weights / near_sums.clamp(min=1.0).index_select(0, pair_source), far_scale  # at most the hemisphere (rounding)
 
 
 def incident_power(form_factors: torch.Tensor, shot_power: torch.Tensor, near: NearReceivers | None,

@@ -28,6 +28,11 @@ def clip_planes(mesh: Mesh, points: torch.Tensor | None = None) -> tuple[float, 
     return 1e-6 * diagonal, 1.01 * diagonal
 
 
+#: Prefetched hemicubes read back and not asked for yet, at most (an atlas each, 0.8 MB at
+#: resolution 256).
+READY_MAX = 2
+
+
 class HemicubeRenderer:
     """What the hemicube of any element of a mesh sees, and so its form factors to all of them.
 
@@ -55,7 +60,8 @@ class HemicubeRenderer:
         self.renders = 0  # hemicubes rendered
         self.hemicube = Hemicube(resolution, cull, gpu=self.device.type == "cuda", profiler=self.profiler)
         self._prefetched = None  # (key, eye, frame) of a hemicube submitted, not yet read back
-        self._ready = None  # (key, view) of one read back before it was asked for
+        # read back before they were asked for, not yet decoded: key -> (atlas, eye, frame)
+        self._ready: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.set_geometry(mesh)
 
     def set_geometry(self, mesh: Mesh) -> None:
@@ -78,30 +84,40 @@ class HemicubeRenderer:
 
     def prefetch_at(self, point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> None:
         """Start drawing the hemicube ``render_at`` will be asked for with these arguments, and
-        return at once: the rasteriser works while the caller does (a sweep: the near field of
-        the node before). One at a time; ignored while another is pending or ready."""
-        if self._prefetched is not None or self._ready is not None:
+        return at once: the rasteriser works while the caller does. The one drawn before, if
+        not asked for yet, is read back first and kept undecoded: a sweep prefetches the next
+        patch's hemicube before it asks for this one's, whose decoding and use then run while
+        the next is drawn. Ignored when this one is pending or read back, or when
+        ``READY_MAX`` are read back and not asked for."""
+        key = _key(point, normal, tangent)
+        if key in self._ready or len(self._ready) >= READY_MAX or (
+                self._prefetched is not None and self._prefetched[0] == key):
             return
+        self._read_back()
         eye, frame = self._placed(point, normal, tangent)
         self.renders += 1
         self.hemicube.submit(eye, frame, self.near, self.far)
-        self._prefetched = (_key(point, normal, tangent), eye, frame)
+        self._prefetched = (key, eye, frame)
 
     def render_at(self, point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> HemicubeView:
         """Render the hemicube at ``point`` (3,) on a surface of unit ``normal`` (3,), its frame
         turned by the in-plane ``tangent`` (3,), and sum its form factors to every element
         (the one ``prefetch_at`` started, when asked for the same)."""
         key = _key(point, normal, tangent)
-        if self._prefetched is not None:  # read it back: the atlas is needed for this one, or was asked for
-            prefetched, eye, frame = self._prefetched
-            self._prefetched = None
-            self._ready = (prefetched, self._view(self.hemicube.collect(), eye, frame))
-        if self._ready is not None and self._ready[0] == key:
-            view, self._ready = self._ready[1], None
-            return view
+        if key not in self._ready:
+            self._read_back()  # it is this one, or the framebuffer is needed for this one
+        if key in self._ready:
+            return self._view(*self._ready.pop(key))
         eye, frame = self._placed(point, normal, tangent)
         self.renders += 1
         return self._view(self.hemicube.render(eye, frame, self.near, self.far), eye, frame)
+
+    def _read_back(self) -> None:
+        """Wait for the prefetched hemicube, if any, and keep its atlas as read."""
+        if self._prefetched is not None:
+            key, eye, frame = self._prefetched
+            self._prefetched = None
+            self._ready[key] = (self.hemicube.collect(), eye, frame)
 
     def _placed(self, point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The hemicube's eye (3,), just off the surface, and its frame (3, 3)."""
@@ -118,11 +134,9 @@ class HemicubeRenderer:
                             mesh.normals, mesh.centroids, F, self.hemicube.resolution)
 
     def _drop_prefetched(self) -> None:
-        """Forget a prefetched hemicube (the mesh changes, or the renderer closes)."""
-        if self._prefetched is not None:
-            self.hemicube.collect()
-            self._prefetched = None
-        self._ready = None
+        """Forget the prefetched hemicubes (the mesh changes, or the renderer closes)."""
+        self._read_back()
+        self._ready.clear()
 
     def from_element(self, shooter: int) -> torch.Tensor:
         """(T,) F_sj from element ``shooter`` to every element j."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Callable, Generator, Protocol
 
 import numpy as np
 import torch
@@ -22,7 +22,8 @@ from hemirad.scene.model import SMALL_RECEIVER_CHOICES
 from hemirad.transport.gl import GLContext
 from hemirad.transport.hemicube import OFF_AXIS_TANGENT
 from hemirad.transport.nearfield import TOTALS as NEAR_TOTALS
-from hemirad.transport.nearfield import NearReceivers, incident_power, near_receivers
+from hemirad.transport.nearfield import (NearReceivers, NearShooter, incident_power, near_field_steps, near_fields,
+                                        run_to_end)
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
 from hemirad.transport.shooters import PatchShooters
@@ -37,10 +38,13 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
-ARITHMETIC = 7  # 7: no needles left by the intersection cut
+ARITHMETIC = 8  # 8: near fields made many shooters at once (rounding)
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
+#: A sweep makes the near fields of this many new nodes at once (``nearfield.near_fields``),
+#: keeping their hemicubes' views until then (1.7 MB each at resolution 256).
+NEAR_BATCH = 32
 
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
@@ -389,19 +393,34 @@ class ProgressiveSolver:
         if self._transport is None:
             self._transport = SweepTransport(self.mesh.num_elements, tree.num_nodes, len(tree.leaf), self.device)
         transport = self._transport
-        order = shooting.tolist()
+        # Patches join the kept light a group at a time (``NEAR_BATCH`` patches in index order,
+        # every group that holds one that shoots): their near fields are made together, and a
+        # group is the same whichever sweep first needs it, so the numbers do not depend on
+        # the sweep (a resumed run's first sweep makes the near fields of every group it needs).
+        # A group's near fields are made a step at a time while the next group's hemicubes are
+        # drawn (the rasteriser's threads work while this one does).
+        groups = sorted({patch // NEAR_BATCH for patch in shooting.tolist() if patch not in transport.patches})
+        order = [patch for g in groups for patch in range(g * NEAR_BATCH, min((g + 1) * NEAR_BATCH, tree.num_patches))]
+        new: dict[int, tuple[torch.Tensor, HemicubeView | None]] = {}  # the group's nodes: (F, view)
+        making = None  # the group before's: (its nodes, its near fields' steps)
         for i, patch in enumerate(order):
-            nodes = patches.cut(patch, self.render_and_keep, self._node_corners)
-            if i + 1 < len(order):  # its hemicube drawn while this patch's near fields are made
+            if i + 1 < len(order):  # drawn while this patch's hemicube is decoded and used
                 self._prefetch(order[i + 1])
+            nodes = patches.cut(patch, self.render_and_keep, self._node_corners)
+            if making is not None and self._step(making):
+                making = None
             for node in nodes:
-                if node not in transport:
-                    F = self.form_factors_of(node)
-                    with self.profiler.phase("update"):
-                        transport.add(node, patches.bounds(node), F, self.near_receivers_of(node, F),
-                                      patches.sources(node)[1])
+                new[node] = (self.form_factors_of(node), self._views.pop(node, None))
             # the views of nodes that split into their children: each holds a hemicube's pixels
             self._views.clear()
+            if i + 1 < len(order) and order[i + 1] // NEAR_BATCH == patch // NEAR_BATCH:
+                continue
+            transport.patches.update(range(patch // NEAR_BATCH * NEAR_BATCH, (patch // NEAR_BATCH + 1) * NEAR_BATCH))
+            if making is not None:
+                self._step(making, to_end=True)
+            making, new = (new, self._near_field_steps(new)), {}
+            if i + 1 == len(order):
+                self._step(making, to_end=True)
             if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
                 self.sweeps, self._transport = False, None
                 return self._shoot_patch()
@@ -475,26 +494,56 @@ class ProgressiveSolver:
         With ``among`` (R,), only those among these elements, unscaled, and not kept."""
         if self.near_reach <= 0:
             return None
-        if among is None and shooter in self._near:
+        if among is None:
+            if shooter not in self._near:
+                run_to_end(self._near_field_steps({shooter: (F, view)}))
             return self._near[shooter]
+        return near_fields(self.mesh, [self._near_shooter(shooter, F, view)], self.near_reach, self.near_totals,
+                           among)[0]
+
+    def _step(self, making: tuple[dict, Generator], to_end: bool = False) -> bool:
+        """Make the next part of a group's near fields (``making``: its nodes, as the sweep
+        gathered them, and ``_near_field_steps``), or with ``to_end`` the rest; once made, add
+        the nodes to the sweeps' kept light. Returns whether they are."""
+        nodes, steps = making
+        with self.profiler.phase("update"):
+            try:
+                next(steps) if not to_end else run_to_end(steps)
+                if not to_end:
+                    return False
+            except StopIteration:
+                pass
+            for node, (F, _) in nodes.items():
+                self._transport.add(node, self.patches.bounds(node), F, self._near.get(node),
+                                    self.patches.sources(node)[1])
+        return True
+
+    def _near_field_steps(self, shooters: dict[int, tuple[torch.Tensor, HemicubeView | None]]) -> Generator:
+        """``near_receivers_of`` each shooter of ``shooters``, given its row F (T,) and the view
+        that gave it (None: the one kept for it, else a new render), made together, in steps
+        (``nearfield.near_field_steps``), and kept. Those kept already are made again with the
+        others: the numbers of a near field made with others can differ from its own in the
+        last bit (vectorised ``log`` and ``atan2`` round otherwise than the scalar ones a
+        batch's tail gets), and a group must give the same in a resumed run."""
+        if self.near_reach > 0 and shooters:
+            made = yield from near_field_steps(self.mesh, [self._near_shooter(s, *shooters[s]) for s in shooters],
+                                               self.near_reach, self.near_totals)
+            self._near.update(zip(shooters, made))
+
+    def _near_shooter(self, shooter: int, F: torch.Tensor, view: HemicubeView | None) -> NearShooter:
+        """What ``nearfield`` needs of ``shooter`` (an element, or a node of the patches) shooting
+        the row F (T,) seen in ``view`` (None: the one kept for it, else a new render)."""
         if view is None:
             view = self._views.pop(shooter, None)
         if view is None:
             view = self.render(shooter)
         if self.patches is None:  # the element is its own source
             members = torch.tensor([shooter], device=self.device)
-            sources = self.mesh.corners_of(members)
-            point, normal = self.mesh.centroids[shooter], self.mesh.normals[shooter]
-        else:
-            tree = self.patches.tree
-            members = self.patches.members(shooter)
-            sources = self.patches.sources(shooter)[0]
-            point, normal = tree.centroid[shooter].to(self.device), tree.normal[shooter].to(self.device)
-        near = near_receivers(self.mesh, members, sources, point, normal, view, F, self.near_reach,
-                              self.near_totals, among)
-        if among is None:
-            self._near[shooter] = near
-        return near
+            return NearShooter(members, self.mesh.corners_of(members), self.mesh.centroids[shooter],
+                               self.mesh.normals[shooter], view, F)
+        tree = self.patches.tree
+        return NearShooter(self.patches.members(shooter), self.patches.sources(shooter)[0],
+                           tree.centroid[shooter].to(self.device), tree.normal[shooter].to(self.device), view, F)
 
     def _receive_incident(self, incident: torch.Tensor, shot_power: torch.Tensor) -> None:
         """Hand every receiver what reaches its front, ``incident`` (T, 3) power, of a shot of
