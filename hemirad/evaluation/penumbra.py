@@ -12,7 +12,7 @@ import torch
 
 from hemirad.geometry.analytic import point_to_triangles
 from hemirad.geometry.mesh import Mesh
-from hemirad.transport.formfactor import decode_items, delta_form_factors
+from hemirad.transport.formfactor import delta_form_factors
 from hemirad.transport.hemicube import Hemicube, tangent_frame
 from hemirad.transport.renderer import clip_planes
 
@@ -39,7 +39,7 @@ def visible_light_fraction(mesh: Mesh, emitting: torch.Tensor, points: torch.Ten
         out = torch.empty(len(points), dtype=torch.float64)
         for i, p in enumerate(points):
             eye = p + near * normal
-            element, front = decode_items(hemicube.render(eye.numpy(), frame, near, far))
+            element, front = (torch.from_numpy(x) for x in hemicube.render(eye.numpy(), frame, near, far))
             sees_light = front & (element >= 0) & emitting[element.clamp(min=0)]
             unoccluded = point_to_triangles(eye, normal, lamp).sum()
             out[i] = weights[sees_light].sum() / unoccluded if unoccluded > 0 else float("nan")

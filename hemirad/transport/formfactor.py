@@ -7,12 +7,11 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
 from hemirad.core.device import cached_per_device
 from hemirad.core.fastops import on_host
-from hemirad.transport.hemicube import BACK_FACE_BIT, FACES, face_viewports
+from hemirad.transport.hemicube import FACES, face_viewports
 
 
 @cached_per_device
@@ -61,20 +60,6 @@ def delta_form_factors(resolution: int) -> torch.Tensor:
     """
     w = raw_delta_form_factors(resolution)
     return w / w.sum()
-
-
-def decode_items(items: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-    """Split an item atlas into element indices and a front-facing mask.
-
-    Args:
-        items: (3R, R) uint32 atlas from ``Hemicube.render``.
-    Returns:
-        element (3R, R) int64: the element seen (-1 where nothing is seen);
-        front (3R, R) bool: the pixel sees the front of an element.
-    """
-    element = (items & np.uint32(BACK_FACE_BIT - 1)).astype(np.int64) - 1
-    front = (items != 0) & (items < np.uint32(BACK_FACE_BIT))
-    return torch.from_numpy(element), torch.from_numpy(front)
 
 
 def element_form_factors(element: torch.Tensor, front: torch.Tensor, weights: torch.Tensor,

@@ -217,7 +217,7 @@ class Hemicube:
         _write(self._ibo, self._triangles[ids])
         return ids, [(int(firsts[f]), int(firsts[f + 1] - firsts[f])) for f in range(len(FACES))]
 
-    def render(self, eye: np.ndarray, frame: np.ndarray, near: float, far: float) -> np.ndarray:
+    def render(self, eye: np.ndarray, frame: np.ndarray, near: float, far: float) -> tuple[np.ndarray, np.ndarray]:
         """Draw the five faces seen from ``eye``.
 
         Args:
@@ -225,7 +225,10 @@ class Hemicube:
             frame: (3, 3) rows t, b, n of the local frame (``tangent_frame``), n the normal.
             near, far: clip distances; everything between them along each face's axis is seen.
         Returns:
-            (3R, R) uint32 item atlas (see the module docstring).
+            element: (3R, R) int64, the triangle each pixel sees, -1 for none (the atlas of
+                the module docstring, decoded);
+            front: (3R, R) bool, the pixel sees a triangle's front (a back face occludes but
+                receives nothing).
         """
         self.submit(eye, frame, near, far)
         return self.collect()
@@ -266,8 +269,9 @@ class Hemicube:
         self._submitted = (ids, ranges)
         self.profiler.add("raster", time.perf_counter() - start)
 
-    def collect(self) -> np.ndarray:
-        """Wait for the hemicube ``submit`` drew and read its atlas back (see ``render``)."""
+    def collect(self) -> tuple[np.ndarray, np.ndarray]:
+        """Wait for the hemicube ``submit`` drew and read its atlas back, decoded (see
+        ``render``)."""
         if self._submitted is None:
             raise RuntimeError("no hemicube was submitted")
         ids, ranges = self._submitted
@@ -277,15 +281,13 @@ class Hemicube:
         mid = time.perf_counter()
         self.fbo.read_into(self._drawn, components=1, dtype="u4")
         self.drawn_triangles = sum(count for _, count in ranges)
-        items = self._drawn
-        if self.cull:  # position in the drawn list -> triangle id, keeping the back-face bit
-            lookup = np.concatenate([[0], ids + 1]).astype(np.uint32)
-            items = lookup[items & (BACK_FACE_BIT - 1)] | (items & BACK_FACE_BIT)
-        else:
-            items = items.copy()  # the caller's: the next read overwrites the buffer
+        # position in the drawn list (+1; 0: nothing) -> triangle id (-1: nothing), in one
+        # gather; a pixel sees a front when its item is neither 0 nor marked as a back face
+        element = np.concatenate([[-1], ids]).take(self._drawn & np.uint32(BACK_FACE_BIT - 1))
+        front = self._drawn - np.uint32(1) < np.uint32(BACK_FACE_BIT - 1)  # (0 - 1 wraps round)
         self.profiler.add("raster", mid - start)
         self.profiler.add("readback", time.perf_counter() - mid)
-        return items
+        return element, front
 
 
 @functools.lru_cache(maxsize=1)

@@ -6,7 +6,7 @@ import torch
 
 from hemirad.core.timing import Profiler
 from hemirad.geometry.mesh import Mesh
-from hemirad.transport.formfactor import decode_items, delta_form_factors, element_form_factors
+from hemirad.transport.formfactor import delta_form_factors, element_form_factors
 from hemirad.transport.hemicube import Hemicube, tangent_frame
 from hemirad.transport.view import HemicubeView
 
@@ -60,8 +60,8 @@ class HemicubeRenderer:
         self.renders = 0  # hemicubes rendered
         self.hemicube = Hemicube(resolution, cull, gpu=self.device.type == "cuda", profiler=self.profiler)
         self._prefetched = None  # (key, eye, frame) of a hemicube submitted, not yet read back
-        # read back before they were asked for, not yet decoded: key -> (atlas, eye, frame)
-        self._ready: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        # read back before they were asked for: key -> (atlas, eye, frame)
+        self._ready: dict[bytes, tuple[tuple[np.ndarray, np.ndarray], np.ndarray, np.ndarray]] = {}
         self.set_geometry(mesh)
 
     def set_geometry(self, mesh: Mesh) -> None:
@@ -85,9 +85,9 @@ class HemicubeRenderer:
     def prefetch_at(self, point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> None:
         """Start drawing the hemicube ``render_at`` will be asked for with these arguments, and
         return at once: the rasteriser works while the caller does. The one drawn before, if
-        not asked for yet, is read back first and kept undecoded: a sweep prefetches the next
-        patch's hemicube before it asks for this one's, whose decoding and use then run while
-        the next is drawn. Ignored when this one is pending or read back, or when
+        not asked for yet, is read back first and kept as read: a sweep prefetches the next
+        patch's hemicube before it asks for this one's, whose form factors and use then run
+        while the next is drawn. Ignored when this one is pending or read back, or when
         ``READY_MAX`` are read back and not asked for."""
         key = _key(point, normal, tangent)
         if key in self._ready or len(self._ready) >= READY_MAX or (
@@ -123,10 +123,11 @@ class HemicubeRenderer:
         """The hemicube's eye (3,), just off the surface, and its frame (3, 3)."""
         return point + self.near * normal, tangent_frame(normal, tangent)
 
-    def _view(self, items: np.ndarray, eye: np.ndarray, frame: np.ndarray) -> HemicubeView:
+    def _view(self, atlas: tuple[np.ndarray, np.ndarray], eye: np.ndarray, frame: np.ndarray) -> HemicubeView:
+        """The view of a hemicube's decoded ``atlas`` (``Hemicube.collect``) drawn at ``eye``."""
         mesh = self.mesh
         with self.profiler.phase("form_factors"):
-            element, front = (x.to(self.device).reshape(-1) for x in decode_items(items))
+            element, front = (torch.from_numpy(x).to(self.device).reshape(-1) for x in atlas)
             weight = self.weights.reshape(-1)
             F = element_form_factors(element, front, weight, mesh.num_elements)
         return HemicubeView(element, front, weight, torch.from_numpy(eye).to(self.device),

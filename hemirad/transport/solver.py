@@ -42,8 +42,9 @@ ARITHMETIC = 8  # 8: near fields made many shooters at once (rounding)
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
-#: A sweep makes the near fields of this many new nodes at once (``nearfield.near_fields``),
-#: keeping their hemicubes' views until then (1.7 MB each at resolution 256).
+#: A sweep makes the near fields of this many patches' nodes at once (``nearfield.near_fields``;
+#: a group, in patch index order), keeping their hemicubes' views until then (1.7 MB each at
+#: resolution 256; two groups' at most).
 NEAR_BATCH = 32
 
 
@@ -507,12 +508,14 @@ class ProgressiveSolver:
         the nodes to the sweeps' kept light. Returns whether they are."""
         nodes, steps = making
         with self.profiler.phase("update"):
-            try:
-                next(steps) if not to_end else run_to_end(steps)
-                if not to_end:
+            if to_end:
+                run_to_end(steps)
+            else:
+                try:
+                    next(steps)
                     return False
-            except StopIteration:
-                pass
+                except StopIteration:
+                    pass
             for node, (F, _) in nodes.items():
                 self._transport.add(node, self.patches.bounds(node), F, self._near.get(node),
                                     self.patches.sources(node)[1])
