@@ -70,6 +70,9 @@ CONTOUR_GAP = 1.0
 GAUSS_POINTS = 4
 #: Contour integrals done between two pauses of ``near_field_steps`` (about 4 ms of work).
 CONTOUR_CHUNK = 1024
+#: Source-receiver pairs that ``near_field_steps`` takes in one pass, at most (a shooter with
+#: more takes them alone).
+PAIR_CHUNK = 1 << 16
 #: A near receiver counts as wholly visible from G when all its level^2 samples are.
 VISIBILITY_LEVEL = 4
 #: With ``area`` totals, the most G's factors to the far receivers are scaled by for a source.
@@ -118,16 +121,24 @@ def _sides_centroids_radii(corners: torch.Tensor) -> tuple[torch.Tensor, torch.T
     return (2.0 * area).sqrt(), centroid, torch.linalg.vector_norm(corners - centroid[:, None], dim=2).amax(1)
 
 
+def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(...) the dot products of (..., 3) ``a`` and ``b`` (broadcast)."""
+    ab = a * b
+    return ab[..., 0] + ab[..., 1] + ab[..., 2]
+
+
 def area_factor_steps(sources: torch.Tensor, receivers: torch.Tensor, receiver_normals: torch.Tensor,
                       points: torch.Tensor, normals: torch.Tensor, from_point: torch.Tensor, source: torch.Tensor,
-                      receiver: torch.Tensor) -> Generator[None, None, torch.Tensor]:
+                      receiver: torch.Tensor, one_shooter: bool = False) -> Generator[None, None, torch.Tensor]:
     """(C,) per pair of a source (``source`` (C,) into the (K, 3, 3) ``sources``) and a
     receiver (``receiver`` (C,) into the (N, 3, 3) ``receivers`` of unit ``receiver_normals``
     (N, 3)), the unoccluded form factor from the source, shooting along its shooter's unit
     ``normals`` (N, 3), to the receiver, given the receiver's Lambert factor ``from_point``
     (N,) from its shooter's point G, ``points`` (N, 3) (per receiver: a receiver near two
-    shooters comes twice). A generator (``near_field_steps``): it pauses between chunks of
-    ``CONTOUR_CHUNK`` contour integrals, and returns the factors.
+    shooters comes twice). With ``one_shooter``, the pairs are every source with every
+    receiver, source by source (then found by broadcasting, not gathered: a refined mesh's
+    shooter has thousands of receivers). A generator (``near_field_steps``): it pauses between
+    chunks of ``CONTOUR_CHUNK`` contour integrals, and returns the factors.
 
     Pairs closer than ``CONTOUR_GAP`` source sides get the area-to-area factor. The others
     get G's factor times the ratio of the kernels cos_s cos_j / r^2 from the source's
@@ -144,13 +155,26 @@ def area_factor_steps(sources: torch.Tensor, receivers: torch.Tensor, receiver_n
     cos_j = -row_sums(to_receiver * receiver_normals) / distance
     steady = (cos_g > 0.1) & (cos_j > 0.1)  # (N,)
     kernel_g = torch.where(steady, cos_g * cos_j / distance.square(), 1.0)
-    d = receiver_centre.index_select(0, receiver) - centre.index_select(0, source)  # (C, 3) from the source's centroid
-    d2 = row_sums(d * d)
-    gap = (d2.sqrt() - radius.index_select(0, source) - receiver_radius.index_select(0, receiver)).clamp(min=0.0)
-    kernel = (row_sums(d * normals.index_select(0, receiver)).clamp(min=0.0)
-              * (-row_sums(d * receiver_normals.index_select(0, receiver))).clamp(min=0.0) / d2.square())
-    out = (from_point / kernel_g).index_select(0, receiver) * kernel
-    close = flatnonzero((gap < CONTOUR_GAP * side.index_select(0, source)) | ~steady.index_select(0, receiver))
+    if one_shooter:  # every source with every receiver, source by source: broadcast (k, N), not gathered
+        def by_receiver(x: torch.Tensor) -> torch.Tensor:
+            return x[None]
+
+        def by_source(x: torch.Tensor) -> torch.Tensor:
+            return x[:, None]
+    else:
+        def by_receiver(x: torch.Tensor) -> torch.Tensor:
+            return x.index_select(0, receiver)
+
+        def by_source(x: torch.Tensor) -> torch.Tensor:
+            return x.index_select(0, source)
+    d = by_receiver(receiver_centre) - by_source(centre)  # (C, 3) from the source's centroid
+    d2 = _dot(d, d)
+    gap = (d2.sqrt() - by_source(radius) - by_receiver(receiver_radius)).clamp(min=0.0).reshape(-1)
+    kernel = (_dot(d, by_receiver(normals)).clamp(min=0.0)
+              * (-_dot(d, by_receiver(receiver_normals))).clamp(min=0.0) / d2.square())
+    out = (by_receiver(from_point / kernel_g) * kernel).reshape(-1)
+    side, steady = by_source(side).expand(d2.shape).reshape(-1), by_receiver(steady).expand(d2.shape).reshape(-1)
+    close = flatnonzero((gap < CONTOUR_GAP * side) | ~steady)
     for chunk in close.split(CONTOUR_CHUNK) if len(close) else ():  # (an empty tensor splits into one empty part)
         yield
         out.index_copy_(0, chunk, triangle_to_triangles(sources.index_select(0, source.index_select(0, chunk)),
@@ -231,12 +255,39 @@ def near_field_steps(mesh: Mesh, shooters: Sequence[NearShooter], reach: float, 
         near &= torch.zeros_like(near[0]).index_fill_(0, among, True)[None]
     shooter_of, rows = torch.nonzero(near, as_tuple=True)  # (N,) each, shooter by shooter
     counts = torch.bincount(shooter_of, minlength=B)  # (B,) n_b
+    # the rest by runs of shooters of at most PAIR_CHUNK source-receiver pairs (a refined
+    # mesh's shooter can have thousands of near receivers: one pass over all of a group's
+    # pairs, millions, ran at half the speed)
+    pairs = (torch.tensor([len(s.sources) for s in shooters]) * counts.cpu()).tolist()
+    starts = [0, *torch.cumsum(counts, 0).tolist()]
+    made, first = [], 0
+    while first < B:
+        last, total = first + 1, pairs[first]
+        while last < B and total + pairs[last] <= PAIR_CHUNK:
+            total, last = total + pairs[last], last + 1
+        yield
+        part = slice(starts[first], starts[last])
+        made += yield from _near_run(mesh, shooters[first:last], shooter_of[part] - first, rows[part],
+                                     counts[first:last], points[first:last], normals[first:last],
+                                     form_factors[first:last], near[first:last], totals, among)
+        first = last
+    return made
+
+
+def _near_run(mesh: Mesh, shooters: Sequence[NearShooter], shooter_of: torch.Tensor, rows: torch.Tensor,
+              counts: torch.Tensor, points: torch.Tensor, normals: torch.Tensor, form_factors: torch.Tensor,
+              near: torch.Tensor, totals: str, among: torch.Tensor | None) -> Generator[None, None, list[NearReceivers]]:
+    """``near_field_steps`` for a run of B ``shooters`` whose near receivers were found: (N,)
+    ``rows``, shooter by shooter (``shooter_of`` (N,), ``counts`` (B,)), given their (B, 3)
+    ``points`` and ``normals``, (B, T) rows ``form_factors`` and ``near`` masks."""
+    device, B = rows.device, len(shooters)
     corners = mesh.corners_of(rows)  # (N, 3, 3)
     point_of, normal_of = points.index_select(0, shooter_of), normals.index_select(0, shooter_of)
     F = form_factors[shooter_of, rows]  # (N,)
-    from_point = point_to_triangles(point_of[:, None], normal_of[:, None], corners)  # Lambert's from G
+    # Lambert's from G (one shooter's: its point and normal, which the products take faster)
+    from_point = (point_to_triangles(points[0], normals[0], corners) if B == 1 else
+                  point_to_triangles(point_of[:, None], normal_of[:, None], corners))
     seen = torch.where(from_point > 0, F / from_point.clamp(min=1e-300), 0.0).clamp(max=1.0)
-    yield
     seen = visibility([s.view for s in shooters], shooter_of, rows, corners, mesh.areas.index_select(0, rows), seen)
     yield
 
@@ -250,7 +301,8 @@ def near_field_steps(mesh: Mesh, shooters: Sequence[NearShooter], reach: float, 
     pair_source = (torch.cumsum(k, 0) - k).index_select(0, pair_of) + position // n_of.clamp(min=1)  # (C,)
     pair_receiver = receiver_start.index_select(0, pair_of) + position % n_of.clamp(min=1)  # (C,) a near pair
     weights = (yield from area_factor_steps(sources, corners, mesh.normals.index_select(0, rows), point_of, normal_of,
-                                            from_point, pair_source, pair_receiver)) * seen.index_select(0, pair_receiver)
+                                            from_point, pair_source, pair_receiver, one_shooter=B == 1)
+               ) * seen.index_select(0, pair_receiver)
     far_scale = sources.new_ones(len(sources))
     if among is None:
         weights, far_scale = _totals(weights, pair_source, pair_receiver, source_of, shooter_of, F, form_factors,

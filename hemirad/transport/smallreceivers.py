@@ -39,7 +39,7 @@ from hemirad.core.fastops import flatnonzero, row_sums
 from hemirad.geometry.analytic import point_to_triangles
 from hemirad.transport.formfactor import sum_by_index
 from hemirad.transport.hemicube import FACES, face_viewports
-from hemirad.transport.view import HemicubeView, pixel_directions
+from hemirad.transport.view import HemicubeView
 
 #: The receivers whose unoccluded footprint on the hemicube is estimated below this many
 #: pixels get their factor from samples. Measured (a right triangle, legs along the pixel
@@ -142,14 +142,12 @@ def visible_form_factors(views: Sequence[HemicubeView], view_of: torch.Tensor, r
     its distance (``NEAR``).
 
     Args:
-        views: the hemicubes (B), of one mesh and resolution; view_of: (n,) the one each
-            receiver is seen from (a shooter's near receivers, many shooters at once).
+        views: the hemicubes, of one mesh; view_of: (n,) the one each receiver is seen from
+            (a shooter's near receivers, many shooters at once).
         rows: (n,) front-facing receivers; corners: (n, 3, 3) theirs; areas: (n,) theirs.
         levels: (n,) int64 each one's samples: the level^2 points of ``sample_barycentrics``.
     """
     n, device = len(rows), corners.device
-    first = views[0]
-    normals, centres, resolution = first.normals, first.points, first.resolution
     points, position = [], []  # per level: the samples (M, 3) and the receiver (M,) of each
     for level in torch.unique(levels).tolist():
         group = flatnonzero(levels == level)
@@ -158,46 +156,47 @@ def visible_form_factors(views: Sequence[HemicubeView], view_of: torch.Tensor, r
         position.append(group.repeat_interleave(len(bary)))
     points, position = torch.cat(points), torch.cat(position)  # (N, 3), (N,)
     owner = rows.index_select(0, position)
-    sample_view = view_of.index_select(0, position)
-    eye = torch.stack([v.eye for v in views]).index_select(0, sample_view)  # (N, 3)
-    frame = torch.stack([v.frame for v in views]).index_select(0, sample_view)  # (N, 3, 3)
-    ray = points - eye  # (N, 3) from the eye to the point
-    local = (frame * ray[:, None]).sum(2)
-    pixels = atlas_pixels(local, resolution)
-    seen = _seen_elements(views, sample_view, pixels)
+    if len(views) == 1:
+        weight, visible = _sample_weights(views[0], points, owner)
+    else:  # each view's samples together
+        sample_view = view_of.index_select(0, position)
+        order = torch.argsort(sample_view, stable=True)
+        parts = order.split(torch.bincount(sample_view, minlength=len(views)).tolist())
+        weight, visible = points.new_empty(len(points)), points.new_empty(len(points))
+        for view, part in zip(views, parts):
+            if len(part):
+                w, v = _sample_weights(view, points.index_select(0, part), owner.index_select(0, part))
+                weight.index_copy_(0, part, w)
+                visible.index_copy_(0, part, v)
+    first = views[0]
+    eyes = torch.stack([view.eye for view in views]).index_select(0, view_of)
+    height = -row_sums((first.points.index_select(0, rows) - eyes) * first.normals.index_select(0, rows))
+    scale = height * areas / (math.pi * levels * levels)  # h_j A_j / (pi S)
+    return sum_by_index(position, visible, n) * scale, sum_by_index(position, weight, n) * scale
+
+
+def _sample_weights(view: HemicubeView, points: torch.Tensor, owner: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N,) the kernel z / r^4 of each sample (N, 3) of a receiver ``owner`` (N,) seen from the
+    eye of ``view``, and (N,) the same with 0 where the shadow map hides it."""
+    ray = points - view.eye  # (N, 3) from the eye to the point
+    local = ray @ view.frame.T
+    pixels = atlas_pixels(local, view.resolution)
+    seen = view.element.index_select(0, pixels)
     other = flatnonzero((seen >= 0) & (seen != owner))  # samples whose pixel sees another element
     r2 = row_sums(ray * ray)
     weight = local[:, 2].clamp(min=0.0) / (r2 * r2)
-    unoccluded = sum_by_index(position, weight, n)
-    if len(other):
-        k, j, eye_o = seen.index_select(0, other), owner.index_select(0, other), eye.index_select(0, other)
-        n_k, n_j = normals.index_select(0, k), normals.index_select(0, j)
-        toward = row_sums(n_k * ray.index_select(0, other))  # n_k . ray
-        d_k = row_sums((centres.index_select(0, k) - eye_o) * n_k)  # the ray meets k's plane at d_k / toward of its length
-        crosses = (d_k * toward > 0) & (d_k.abs() < (1.0 - _TOLERANCE) * toward.abs())
-        d_j = row_sums((centres.index_select(0, j) - eye_o) * n_j)  # < 0: the eye is in front of j
-        # what the pixel sees, from the eye: its ray's direction to k's plane
-        direction = (frame.index_select(0, other) * pixel_directions(resolution, device).index_select(
-            1, pixels.index_select(0, other)).T[:, :, None]).sum(1)
-        seen_at = (d_k / row_sums(direction * n_k))[:, None] * direction
-        in_front = row_sums(n_j * seen_at) - d_j > _TOLERANCE * d_j.abs()
-        hidden = other.index_select(0, flatnonzero(crosses & in_front))
-        weight = weight.index_fill(0, hidden, 0.0)
-    height = -row_sums((centres.index_select(0, rows) - torch.stack([v.eye for v in views]).index_select(0, view_of))
-                       * normals.index_select(0, rows))
-    scale = height * areas / (math.pi * levels * levels)  # h_j A_j / (pi S)
-    return sum_by_index(position, weight, n) * scale, unoccluded * scale
-
-
-def _seen_elements(views: Sequence[HemicubeView], view_of: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
-    """(N,) the element each of (N,) ``pixels`` of its view ``views[view_of]`` sees (-1: none):
-    one gather per view (concatenating the views' atlases would copy them whole)."""
-    if len(views) == 1:
-        return views[0].element.index_select(0, pixels)
-    order = torch.argsort(view_of, stable=True)
-    parts = pixels.index_select(0, order).split(torch.bincount(view_of, minlength=len(views)).tolist())
-    seen = torch.cat([view.element.index_select(0, part) for view, part in zip(views, parts)])
-    return torch.empty_like(seen).index_copy_(0, order, seen)
+    if len(other) == 0:
+        return weight, weight
+    k = seen.index_select(0, other)
+    toward = row_sums(view.normals.index_select(0, k) * ray.index_select(0, other))  # n_k . ray
+    d_k = view.distance.index_select(0, k)  # the ray meets k's plane at d_k / toward of its length
+    crosses = (d_k * toward > 0) & (d_k.abs() < (1.0 - _TOLERANCE) * toward.abs())
+    j = owner.index_select(0, other)
+    d_j = view.distance.index_select(0, j)  # < 0: the eye is in front of j
+    seen_at = view.hits(pixels.index_select(0, other)) - view.eye[:, None]  # (3, M) what the pixel sees
+    in_front = (view.normals_of(j) * seen_at).sum(0) - d_j > _TOLERANCE * d_j.abs()
+    hidden = other.index_select(0, flatnonzero(crosses & in_front))
+    return weight, weight.index_fill(0, hidden, 0.0)
 
 
 def small_receiver_form_factors(view: HemicubeView, corners: torch.Tensor, areas: torch.Tensor,
