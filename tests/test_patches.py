@@ -298,3 +298,33 @@ def test_sweep_matrices_are_the_same_whatever_batches_their_entries_came_in():
     assert torch.equal(whole.matrix().to_dense(), dense)
     power = torch.rand(shape[1], 3, generator=g, dtype=torch.float64)
     assert torch.equal(whole.matrix() @ power, parts.matrix() @ power)
+
+
+@pytest.mark.parametrize("totals", ["hemicube", "area"])
+def test_near_fields_made_together_are_each_shooters_own(totals, monkeypatch):
+    # Many shooters' near fields are made in one pass (and in runs of at most PAIR_CHUNK
+    # pairs, a run of one shooter broadcast rather than gathered): each must be what that
+    # shooter alone gives, to rounding (vectorised transcendentals may differ in the last bit).
+    from hemirad.transport import nearfield
+    scene = hemirad.load_scene("cornell_box")
+    scene.solver.resolution = 64
+    solver = make_solver(scene)
+    try:
+        patches = solver.patches
+        shooters = []
+        for patch in range(0, patches.tree.num_patches, 23):
+            for node in patches.cut(patch, solver.render_and_keep, solver._node_corners):
+                shooters.append(solver._near_shooter(node, solver.form_factors_of(node), None))
+        alone = [nearfield.near_fields(solver.mesh, [s], NEAR_REACH, totals)[0] for s in shooters]
+        monkeypatch.setattr(nearfield, "PAIR_CHUNK", 2000)  # runs of several shooters, and of one
+        for together in (nearfield.near_fields(solver.mesh, shooters, NEAR_REACH, totals),
+                         nearfield.run_to_end(nearfield.near_field_steps(solver.mesh, shooters, NEAR_REACH, totals))):
+            assert len(together) == len(shooters)
+            for one, many in zip(alone, together):
+                assert torch.equal(one.rows, many.rows)
+                assert one.weights.shape == many.weights.shape
+                torch.testing.assert_close(many.weights, one.weights, rtol=1e-12, atol=1e-18)
+                torch.testing.assert_close(many.far_scale, one.far_scale, rtol=1e-12, atol=0.0)
+        assert sum(len(n.rows) for n in alone) > 20 * len(shooters)  # not a vacuous comparison
+    finally:
+        solver.close()
