@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from hemirad.core.fastops import flatnonzero, marked_positions
+from hemirad.core.fastops import flatnonzero, marked_positions, segments
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import inherit
 from hemirad.transport.view import HemicubeView
@@ -102,9 +102,7 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
     old_of_pixel = element.index_select(0, split_pixels)
     n_candidates = descent.count.index_select(0, old_of_pixel)
     device = element.device
-    pixel = torch.repeat_interleave(torch.arange(len(split_pixels), device=device), n_candidates)
-    first = torch.cumsum(n_candidates, 0) - n_candidates
-    rank = torch.arange(len(pixel), device=device) - first[pixel]
+    pixel, rank = segments(n_candidates)
     slot = descent.start.index_select(0, old_of_pixel).index_select(0, pixel) + rank  # (M,) into ordered
     candidate = descent.ordered.index_select(0, slot)
     # Each descendant's three edges as inward unit normals in its plane, with offsets from its

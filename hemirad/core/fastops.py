@@ -39,8 +39,17 @@ def device_forms():
 
 
 def row_sums(x: torch.Tensor) -> torch.Tensor:
-    """(N,) x[:, 0] + x[:, 1] + x[:, 2] of a (N, 3) tensor: ``x.sum(1)``, in the same order."""
-    return x[:, 0] + x[:, 1] + x[:, 2]
+    """(...) x[..., 0] + x[..., 1] + x[..., 2] of a (..., 3) tensor: ``x.sum(-1)``, in the same
+    order."""
+    return x[..., 0] + x[..., 1] + x[..., 2]
+
+
+def segments(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N,) the segment of each of the N = sum(counts) items laid out segment after segment,
+    and (N,) its rank within its segment, for (B,) int64 ``counts``."""
+    segment = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
+    start = torch.cumsum(counts, 0) - counts
+    return segment, torch.arange(len(segment), device=counts.device) - start.index_select(0, segment)
 
 
 def flatnonzero(mask: torch.Tensor) -> torch.Tensor:

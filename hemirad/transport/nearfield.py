@@ -52,7 +52,7 @@ from typing import Generator, Sequence, TypeVar
 
 import torch
 
-from hemirad.core.fastops import flatnonzero, row_sums
+from hemirad.core.fastops import flatnonzero, row_sums, segments
 from hemirad.geometry.analytic import point_to_triangles, triangle_to_triangles
 from hemirad.geometry.mesh import Mesh
 from hemirad.transport.smallreceivers import visible_form_factors
@@ -121,12 +121,6 @@ def _sides_centroids_radii(corners: torch.Tensor) -> tuple[torch.Tensor, torch.T
     return (2.0 * area).sqrt(), centroid, torch.linalg.vector_norm(corners - centroid[:, None], dim=2).amax(1)
 
 
-def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(...) the dot products of (..., 3) ``a`` and ``b`` (broadcast)."""
-    ab = a * b
-    return ab[..., 0] + ab[..., 1] + ab[..., 2]
-
-
 def area_factor_steps(sources: torch.Tensor, receivers: torch.Tensor, receiver_normals: torch.Tensor,
                       points: torch.Tensor, normals: torch.Tensor, from_point: torch.Tensor, source: torch.Tensor,
                       receiver: torch.Tensor, one_shooter: bool = False) -> Generator[None, None, torch.Tensor]:
@@ -168,10 +162,10 @@ def area_factor_steps(sources: torch.Tensor, receivers: torch.Tensor, receiver_n
         def by_source(x: torch.Tensor) -> torch.Tensor:
             return x.index_select(0, source)
     d = by_receiver(receiver_centre) - by_source(centre)  # (C, 3) from the source's centroid
-    d2 = _dot(d, d)
+    d2 = row_sums(d * d)
     gap = (d2.sqrt() - by_source(radius) - by_receiver(receiver_radius)).clamp(min=0.0).reshape(-1)
-    kernel = (_dot(d, by_receiver(normals)).clamp(min=0.0)
-              * (-_dot(d, by_receiver(receiver_normals))).clamp(min=0.0) / d2.square())
+    kernel = (row_sums(d * by_receiver(normals)).clamp(min=0.0)
+              * (-row_sums(d * by_receiver(receiver_normals))).clamp(min=0.0) / d2.square())
     out = (by_receiver(from_point / kernel_g) * kernel).reshape(-1)
     side, steady = by_source(side).expand(d2.shape).reshape(-1), by_receiver(steady).expand(d2.shape).reshape(-1)
     close = flatnonzero((gap < CONTOUR_GAP * side) | ~steady)
@@ -196,14 +190,6 @@ def visibility(views: Sequence[HemicubeView], view_of: torch.Tensor, rows: torch
                                                corners.index_select(0, doubtful), areas.index_select(0, doubtful), levels)
     # equal sums: no sample hidden
     return ratio.index_copy(0, doubtful, torch.where(visible >= unoccluded, 1.0, ratio.index_select(0, doubtful)))
-
-
-def _segments(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(N,) the segment of each of sum(counts) items laid out segment after segment, and (N,)
-    its position within its segment, for (B,) ``counts``."""
-    segment = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
-    start = torch.cumsum(counts, 0) - counts
-    return segment, torch.arange(len(segment), device=counts.device) - start.index_select(0, segment)
 
 
 def near_fields(mesh: Mesh, shooters: Sequence[NearShooter], reach: float, totals: str = "hemicube",
@@ -295,7 +281,7 @@ def _near_run(mesh: Mesh, shooters: Sequence[NearShooter], shooter_of: torch.Ten
     sources = torch.cat([s.sources for s in shooters])  # (K, 3, 3)
     k = torch.tensor([len(s.sources) for s in shooters], device=device)  # (B,)
     source_of = torch.repeat_interleave(torch.arange(B, device=device), k)  # (K,)
-    pair_of, position = _segments(k * counts)  # the shooter of each pair
+    pair_of, position = segments(k * counts)  # the shooter of each pair
     receiver_start = torch.cumsum(counts, 0) - counts
     n_of = counts.index_select(0, pair_of)
     pair_source = (torch.cumsum(k, 0) - k).index_select(0, pair_of) + position // n_of.clamp(min=1)  # (C,)

@@ -400,7 +400,7 @@ class ProgressiveSolver:
         # the sweep (a resumed run's first sweep makes the near fields of every group it needs).
         # A group's near fields are made a step at a time while the next group's hemicubes are
         # drawn (the rasteriser's threads work while this one does).
-        groups = sorted({patch // NEAR_BATCH for patch in shooting.tolist() if patch not in transport.patches})
+        groups = sorted({patch // NEAR_BATCH for patch in shooting.tolist()} - transport.groups)
         order = [patch for g in groups for patch in range(g * NEAR_BATCH, min((g + 1) * NEAR_BATCH, tree.num_patches))]
         new: dict[int, tuple[torch.Tensor, HemicubeView | None]] = {}  # the group's nodes: (F, view)
         making = None  # the group before's: (its nodes, its near fields' steps)
@@ -416,7 +416,7 @@ class ProgressiveSolver:
             self._views.clear()
             if i + 1 < len(order) and order[i + 1] // NEAR_BATCH == patch // NEAR_BATCH:
                 continue
-            transport.patches.update(range(patch // NEAR_BATCH * NEAR_BATCH, (patch // NEAR_BATCH + 1) * NEAR_BATCH))
+            transport.groups.add(patch // NEAR_BATCH)
             if making is not None:
                 self._step(making, to_end=True)
             making, new = (new, self._near_field_steps(new)), {}

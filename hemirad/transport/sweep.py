@@ -99,7 +99,7 @@ class SweepTransport:
         self.column_of_leaf = torch.arange(num_leaves, device=device)
         self.far_scale = torch.ones(num_leaves, dtype=torch.float64, device=device)
         self._nodes: set[int] = set()
-        self.patches: set[int] = set()  # the patches all of whose nodes were added (the caller's record)
+        self.groups: set[int] = set()  # the caller's groups of patches whose nodes were all added
         self._pending: dict[int, _NodeLight] = {}  # added since the matrices were last merged
         self._far = _SortedCSR((num_elements, num_nodes), device)
         self._near = _SortedCSR((num_elements, num_leaves), device)
