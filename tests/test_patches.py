@@ -266,6 +266,29 @@ def test_an_object_can_set_its_own_patch_size():
     finally:
         solver.close()
 
+def test_auto_patches_refined_by_the_answer_are_capped_by_the_scene_size():
+    # Office at twice its element sizes: 1 m wall elements make 2 m auto patches; refining by
+    # the answer they are at most AUTO_PATCH_SCENE of the room's 2.7 m height, and a length
+    # the scene asks for is kept as asked.
+    from hemirad.assembly import AUTO_PATCH_SCENE, make_patches
+    from hemirad.scene.meshing import build_mesh
+
+    def widest(scene) -> float:
+        mesh = build_mesh(scene)
+        patch = make_patches(scene, mesh, torch.device("cpu")).tree.patch
+        centroids = mesh.centroids
+        return max(float((centroids[patch == p].amax(dim=0) - centroids[patch == p].amin(dim=0)).max())
+                   for p in torch.unique(patch))
+
+    scene = hemirad.load_scene("office").with_element_sizes_scaled(2.0)
+    cap = AUTO_PATCH_SCENE * 2.7
+    assert widest(scene) > 1.5 * cap  # unrefined: two elements a side
+    scene.refine.pattern, scene.refine.criterion = "pattern2", "answer"
+    assert scene.refines_by_answer
+    assert widest(scene) < cap
+    scene.solver.patch_size = 1.5
+    assert widest(scene) > 1.5 * cap
+
 
 def test_a_bad_patch_size_is_one_paragraph_naming_the_key(tmp_path):
     from hemirad.core.errors import SceneError
