@@ -10,7 +10,7 @@ import torch
 
 import hemirad
 from hemirad.core.fastops import flatnonzero
-from hemirad.adaptive.answer import element_errors, estimated_relative_error, refine_mesh, select_by_error
+from hemirad.adaptive.answer import element_errors, estimated_relative_error, refine_mesh, split_by_error
 from hemirad.output.display import vertex_values
 from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.adaptive.refine import Refiner
@@ -54,16 +54,30 @@ def test_the_estimate_vanishes_for_a_constant_and_a_linear_field_and_finds_a_ste
     assert int(far.sum()) > 50 and float(step[far].max()) < 1e-9 and float(step[near].max()) > 0.1
 
 
-def test_the_worst_elements_are_chosen_by_error_squared_times_area():
-    errors = torch.tensor([0.1, 0.3, 0.2, 0.3, 0.0], dtype=torch.float64)
-    areas = torch.tensor([1.0, 1.0, 4.0, 1.0, 9.0], dtype=torch.float64)
-    everything = torch.ones(5, dtype=torch.bool)
-    # scores 0.01, 0.09, 0.16, 0.09, 0: the big element first, then the tie in index order
-    assert select_by_error(errors, areas, everything, 2).nonzero().reshape(-1).tolist() == [1, 2]
-    assert select_by_error(errors, areas, everything, 10).sum() == 4  # never one without error
-    not_2 = everything.clone()
-    not_2[2] = False
-    assert select_by_error(errors, areas, not_2, 1).nonzero().reshape(-1).tolist() == [1]
+def test_splits_go_where_error_squared_times_area_is_largest_and_deep_only_where_steep():
+    mesh = grid(element_size=0.25)  # 32 triangles, all of one area
+    refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer", max_depth=3), torch.zeros(32, 3))
+    errors = torch.full((32,), 0.01, dtype=torch.float64)
+    errors[5] = 1.0  # scores 1e-4 x area, and 1 x area for element 5: its children's 1/32 still lead
+    errors[20] = 0.0  # never split without error
+    new, parent = split_by_error(refiner, mesh, errors, 5)  # element 5 and its four children
+    level = new.level
+    assert int(level[parent == 5].max()) == 2 and int((parent == 5).sum()) == 16
+    # a neighbour is split only by the 2:1 grading, nothing else gets past one level
+    assert int(level[parent != 5].max()) <= 1 and not bool((parent == 20).sum() > 1 and (level[parent == 20] > 1).any())
+    # equal errors: a budget past every element's one split reaches no child, since the
+    # children's equal scores (CHILD_SCORE of their parents') do not all fit
+    even = torch.where(errors > 0.5, 0.01, errors)
+    one_level, parent = split_by_error(refiner, mesh, even, 40)
+    assert int(one_level.level.max()) == 1 and one_level.num_elements == 32 + 3 * 31
+    # a steeper element's children come before the others' (its score 4x theirs, its
+    # children's 4 CHILD_SCORE x)
+    steeper = even.clone()
+    steeper[7] = 0.02
+    deeper, parent = split_by_error(refiner, mesh, steeper, 40)
+    assert int(deeper.level[parent == 7].max()) == 2 and int(deeper.level[parent != 7].max()) == 1
+    unchanged, same = split_by_error(refiner, mesh, torch.zeros(32, dtype=torch.float64), 10)
+    assert unchanged is mesh and torch.equal(same, torch.arange(32))
 
 
 def lamp_solver(mesh, resolution=256):
