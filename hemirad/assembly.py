@@ -114,10 +114,10 @@ def scene_extent(mesh: Mesh) -> float:
 def patch_sizes(scene: Scene, mesh: Mesh, owner: np.ndarray, rims: bool = True) -> np.ndarray:
     """(T,) the patch side each element asks for: its object's (``owner`` (T,), the index in
     ``scene.objects`` of each element's) ``patch_size``, else the solver's; ``auto`` is
-    ``AUTO_PATCH_ELEMENTS`` element sides (refining by the answer, at most ``AUTO_PATCH_SCENE``
-    times the mesh's smallest extent, ``scene_extent``), ``none`` 0 (it shoots alone); with contacts meshed,
-    0 on the rims of the holes they leave (``geometry.patches.hole_rims``) unless ``rims`` is
-    False."""
+    ``AUTO_PATCH_ELEMENTS`` element sides (refining by the answer, at most
+    ``AUTO_PATCH_SCENE`` times the mesh's smallest extent, ``scene_extent``), ``none`` 0 (it
+    shoots alone); with contacts meshed, 0 on the rims of the holes they leave
+    (``geometry.patches.hole_rims``) unless ``rims`` is False."""
     asked = [obj.patch_size if obj.patch_size is not None else scene.solver.patch_size for obj in scene.objects]
     # per object: a multiple of the element side (auto) and a length (a number), one of them 0
     factor = np.asarray([AUTO_PATCH_ELEMENTS if size == "auto" else 0.0 for size in asked])
