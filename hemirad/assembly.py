@@ -106,7 +106,8 @@ def refined_patches(scene: Scene, solver: ProgressiveSolver, saved: dict | None 
 def scene_extent(mesh: Mesh) -> float:
     """The smallest side of the mesh's bounding box that is not 0 (inf where every side is:
     a point caps nothing)."""
-    sides = (mesh.vertices.amax(dim=0) - mesh.vertices.amin(dim=0)).cpu().numpy()
+    low, high = mesh.bounding_box()
+    sides = (high - low).cpu().numpy()
     sides = sides[sides > 0]
     return float(sides.min()) if len(sides) else float("inf")
 

@@ -10,7 +10,7 @@ import torch
 
 import hemirad
 from hemirad.core.fastops import flatnonzero
-from hemirad.adaptive.answer import element_errors, estimated_relative_error, refine_mesh, split_by_error
+from hemirad.adaptive.answer import adopt_and_regather, element_errors, estimated_relative_error, split_by_error
 from hemirad.output.display import vertex_values
 from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.adaptive.refine import Refiner
@@ -105,7 +105,7 @@ def test_split_receivers_get_the_light_a_fresh_solve_gives_them_and_keep_their_p
         before = (solver.state.radiosity * solver.areas[:, None])[solver.mesh.surface == 1].sum(0)
         refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer", max_depth=3), solver.emission)
         for _ in range(2):  # two levels of late splits
-            refine_mesh(solver, refiner, solver.mesh.surface == 1)
+            adopt_and_regather(solver, *refiner.split(solver.mesh, solver.mesh.surface == 1))
         mesh, state = solver.mesh, solver.state
         floor = mesh.surface == 1
         assert int(floor.sum()) == 16 * 40  # 10 x 2 cells, 2 triangles each, split twice

@@ -278,7 +278,7 @@ def split_by_error(refiner: "Refiner", mesh: Mesh, errors: torch.Tensor, count: 
     cutoff = float(levels[len(levels) - fitting])
     current, parent = mesh, torch.arange(mesh.num_elements, device=errors.device)
     for _ in range(GENERATIONS):
-        chosen = (score >= cutoff) & (score > 0) & refiner.splittable(current, nothing)
+        chosen = (score >= cutoff) & refiner.splittable(current, nothing)  # cutoff > 0
         if not bool(chosen.any()):
             break
         current, step = refiner.split(current, chosen)
@@ -287,11 +287,6 @@ def split_by_error(refiner: "Refiner", mesh: Mesh, errors: torch.Tensor, count: 
         score = torch.where(torch.isin(step, split), score * CHILD_SCORE, score)
         parent = parent.index_select(0, step)
     return current, parent
-
-
-def refine_mesh(solver: "ProgressiveSolver", refiner: "Refiner", chosen: torch.Tensor) -> None:
-    """Split the ``chosen`` (T,) elements (and what grading adds), then ``regather``."""
-    adopt_and_regather(solver, *refiner.split(solver.mesh, chosen))
 
 
 def adopt_and_regather(solver: "ProgressiveSolver", new_mesh: Mesh, parent: torch.Tensor) -> None:
