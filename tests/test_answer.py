@@ -10,7 +10,8 @@ import torch
 
 import hemirad
 from hemirad.core.fastops import flatnonzero
-from hemirad.adaptive.answer import adopt_and_regather, element_errors, estimated_relative_error, split_by_error
+from hemirad.adaptive.answer import (adopt_and_regather, element_errors, estimated_relative_error, round_splits,
+                                     split_by_error)
 from hemirad.output.display import vertex_values
 from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.adaptive.refine import Refiner
@@ -153,6 +154,35 @@ def test_power_balances_to_1e9_through_rounds_of_late_splits():
         assert float(s.escaped.abs().max()) < 1e-6 * float(solver.emitted_power.max())
     finally:
         solver.close()
+
+
+def test_rounds_to_a_budget_grow_the_mesh_by_equal_ratios_and_never_past_it():
+    # 730 elements to 3,387 with four children a split: growth 4.64 needs three rounds of at
+    # most doubling, each about 4.64^(1/3) = 1.67, rather than two doublings and a sliver
+    elements, growth = 730, []
+    while (count := round_splits(elements, 3387, 4, 8 - len(growth))) > 0:
+        growth.append((elements + 3 * count) / elements)
+        elements += 3 * count
+    assert len(growth) == 3 and max(growth) < 1.7 and min(growth) > 1.6 and 3387 - 3 < elements <= 3387
+    assert round_splits(3387, 3387, 4, 8) == 0
+    assert round_splits(730, 3387, 4, 2) == 243  # too few rounds left to reach it: each doubles
+
+    # solved: grading's extra splits (2:1 between neighbours) never take the mesh past it
+    from hemirad.adaptive.answer import refine_by_answer
+
+    mesh = closed_box(element_size=0.25)
+    T = mesh.num_elements
+    rho, E = random_materials(T, seed=2, span=0.6, low=0.2, glowing=32)
+    solver = ProgressiveSolver(mesh, rho, E, 32, patches=PatchShooters(build_patches(mesh, np.full(T, 0.5)),
+                                                                       torch.device("cpu")))
+    refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
+    budget = 3 * T
+    try:
+        rounds = refine_by_answer(solver, refiner, budget, 0.0, 4, lambda: solver.run(10_000, 1e-2),
+                                  vertex_values=vertex_values)
+    finally:
+        solver.close()
+    assert all(r.elements <= budget for r in rounds) and rounds[-1].elements > 0.9 * budget
 
 
 def test_a_run_refines_by_the_answer_and_reports_its_rounds_and_estimate(tmp_path):

@@ -27,6 +27,7 @@ and a threshold cannot be tuned to a mesh size. Here the judge is the solution i
 """
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
@@ -188,6 +189,27 @@ CHILD_SCORE = 1.0 / 32.0
 GENERATIONS = 2
 
 
+def round_splits(elements: int, max_elements: int, children: int, rounds_left: int) -> int:
+    """How many of its ``elements`` a round splits on the way to ``max_elements`` (a split
+    adds ``children`` - 1), ``rounds_left`` rounds at most: ``ROUND_SHARE`` of them where the
+    budget needs more rounds than that; else the rounds it needs, each growing the mesh by at
+    most 1 + (``children`` - 1) ``ROUND_SHARE``, grow it by equal ratios, so no solve is spent
+    on a last sliver of the budget. Measured (runs to a third of the finest uniform mesh's
+    elements from x2; relMSE, seconds against that mesh's): rounds of ``ROUND_SHARE`` and
+    the rest in a last one, Cornell box 0.00032 in 40%, floating 0.00008 in 73%, office
+    0.00012 in 48%; equal ratios 0.00030 in 36%, 0.00008 in 59%, 0.00013 in 47%; the rest
+    taken with the round before (one solve fewer) 0.00032 in 28%, 0.00012 in 56%, 0.00017
+    in 33% (office's round was too large for the answer it was ranked on)."""
+    room = (max_elements - elements) // (children - 1)
+    if room <= 0:
+        return 0
+    ratio = max_elements / elements
+    rounds = max(1, math.ceil(math.log(ratio) / math.log(1.0 + (children - 1) * ROUND_SHARE) - 1e-9))
+    if rounds > rounds_left:
+        return min(room, int(ROUND_SHARE * elements))
+    return min(room, int((ratio ** (1.0 / rounds) - 1.0) * elements / (children - 1)))
+
+
 @dataclass
 class RoundReport:
     round: int
@@ -207,7 +229,9 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
     """Alternate shooting to the stopping rule (``shoot_on``) and refining where the answer
     is worst, until the estimated relative error is under ``tolerance``, the mesh has
     ``max_elements``, or ``rounds`` refinements were made. Each round may at most double
-    the element count, so the estimate is renewed as the mesh learns.
+    the element count, so the estimate is renewed as the mesh learns; the rounds to the
+    budget grow it by equal ratios (``round_splits``), and grading's extra splits never
+    take it past the budget.
 
     ``refiner`` supplies the split pattern, the 2:1 grading and the depth and size limits.
     ``patches_for()``: the patches of the solver's mesh just split, to solve it afresh with
@@ -230,11 +254,14 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
         estimated = (estimated_relative_error(mesh, shown, vertex_values, errors, solver.emission)
                      if estimate is None else estimate())
         reports.append(RoundReport(index, mesh.num_elements, 0, estimated, solver.state.shots))
-        room = (max_elements - mesh.num_elements) // (refiner.children - 1)
-        count = min(room, int(ROUND_SHARE * mesh.num_elements))
+        count = round_splits(mesh.num_elements, max_elements, refiner.children, rounds - index)
         if index == rounds or estimated <= tolerance or count <= 0:
             break
         new_mesh, parent = split_by_error(refiner, mesh, errors, count)
+        while new_mesh.num_elements > max_elements and count > 0:
+            # grading's splits came on top of the count's: fewer, until the budget holds
+            count -= -(-(new_mesh.num_elements - max_elements) // (refiner.children - 1))
+            new_mesh, parent = split_by_error(refiner, mesh, errors, count)
         if new_mesh.num_elements == mesh.num_elements:
             break
         if patches_for is None:
