@@ -132,6 +132,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--error-samples", type=_non_negative_int, metavar="N",
                         help="points at which the solution checks its own error by final gathers "
                              "(stats.json's estimated_error; 0: none; solver.error_samples, default 1000)")
+    parser.add_argument("--picture-error-samples", type=_non_negative_int, metavar="N",
+                        help="points the camera's pixels see at which the picture's error is estimated "
+                             "the same way (stats.json's estimated_picture_error; solver.picture_error_samples, "
+                             "default 0: none)")
     parser.add_argument("--device", type=_device,
                         help="where the solve runs (solver.device): " +
                              "; ".join(f"{name}, {meaning}" for name, meaning in DEVICES.items()))
@@ -220,7 +224,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
                       "device": ("--device", args.device), "patch_size": ("--patch-size", args.patch_size),
                       "small_receivers": ("--small-receivers", args.small_receivers),
                       "reconstruction": ("--reconstruction", args.reconstruction),
-                      "error_samples": ("--error-samples", args.error_samples)}
+                      "error_samples": ("--error-samples", args.error_samples),
+                      "picture_error_samples": ("--picture-error-samples", args.picture_error_samples)}
     refine_options = {"pattern": ("--refine", args.refine), "criterion": ("--criterion", args.criterion),
                       "threshold": ("--threshold", args.threshold),
                       "relative": ("--relative" if args.relative else "--absolute", args.relative),
@@ -269,6 +274,9 @@ def _solve_and_write(args: argparse.Namespace, argv: list[str] | None, scene, ou
     estimate = stats.get("estimated_error")
     estimate = (f", estimated error {estimate:.1%} +- {stats['estimated_error_standard_error']:.1%}"
                 if estimate is not None else "")
+    if stats.get("estimated_picture_error") is not None:
+        estimate += (f" (the picture's {stats['estimated_picture_error']:.1%} +- "
+                     f"{stats['estimated_picture_error_standard_error']:.1%})")
     say(f"hemirad: {stats['elements']} elements, {stats['shots']} shots{resumed}, unshot fraction "
         f"{stats['unshot_fraction']:.3g}{estimate}, {time.perf_counter() - start:.1f} s")
     for kind, path in paths.items():

@@ -565,6 +565,12 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
                                              vertex_values=_shown_vertex_values(scene))
     stats.update(_estimate_stats(gathered, interpolation))
     stats["seconds"]["estimate"] = seconds  # the final mesh's estimate (each round's counts in "solve")
+    if options.picture_error_samples:
+        started = time.perf_counter()
+        picture = result.estimate_image_error(samples=options.picture_error_samples)
+        stats.update(estimated_picture_error=picture.relative_rms if picture else None,
+                     estimated_picture_error_standard_error=picture.standard_error if picture else None)
+        stats["seconds"]["picture_estimate"] = time.perf_counter() - started
     if scene.sensors or scene.grids:
         measured = time.perf_counter()
         result.sensors, result.grids = survey.measure(scene, final, result.display_radiosity)

@@ -10,8 +10,8 @@ import torch
 
 import hemirad
 from hemirad.core.fastops import flatnonzero
-from hemirad.adaptive.answer import (adopt_and_regather, element_errors, estimated_relative_error, round_splits,
-                                     split_by_error)
+from hemirad.adaptive.answer import (adopt_and_regather, element_errors, estimated_relative_error,
+                                     refine_by_answer, round_splits, split_by_error)
 from hemirad.output.display import vertex_values
 from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.adaptive.refine import Refiner
@@ -136,8 +136,6 @@ def test_split_receivers_get_the_light_a_fresh_solve_gives_them_and_keep_their_p
 def test_power_balances_to_1e9_through_rounds_of_late_splits():
     # a closed box of random reflectances, one glowing face, two rounds of splits after
     # converging: received + unshot + escaped = emitted, and nothing escapes a closed box
-    from hemirad.adaptive.answer import refine_by_answer
-
     mesh = closed_box(element_size=0.25)
     T = mesh.num_elements
     rho, E = random_materials(T, seed=2, span=0.6, low=0.2, glowing=32)
@@ -168,8 +166,6 @@ def test_rounds_to_a_budget_grow_the_mesh_by_equal_ratios_and_never_past_it():
     assert round_splits(730, 3387, 4, 2) == 243  # too few rounds left to reach it: each doubles
 
     # solved: grading's extra splits (2:1 between neighbours) never take the mesh past it
-    from hemirad.adaptive.answer import refine_by_answer
-
     mesh = closed_box(element_size=0.25)
     T = mesh.num_elements
     rho, E = random_materials(T, seed=2, span=0.6, low=0.2, glowing=32)

@@ -14,7 +14,8 @@ MAX_TRIANGLES = 5_000_000
 
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot", "sweeps",
-                "shooter_split", "cache_mb", "small_receivers", "error_samples", "reconstruction")
+                "shooter_split", "cache_mb", "small_receivers", "error_samples", "picture_error_samples",
+                "reconstruction")
 _MESHING_KEYS = ("contacts", "intersections")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
                 "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds")
@@ -88,6 +89,9 @@ def read_solver(check: Checker, v) -> SolverOptions:
         opts.reconstruction = check.choice(m["reconstruction"], "solver.reconstruction", RECONSTRUCTION_CHOICES)
     if "error_samples" in m:
         opts.error_samples = check.integer(m["error_samples"], "solver.error_samples", "a whole number >= 0", 0)
+    if "picture_error_samples" in m:
+        opts.picture_error_samples = check.integer(m["picture_error_samples"], "solver.picture_error_samples",
+                                                   "a whole number >= 0", 0)
     return opts
 
 
