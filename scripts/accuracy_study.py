@@ -268,20 +268,22 @@ def converged_study(scenes, log=print) -> list[dict]:
             _answer_run(name, shipped, comparison, factor, CONVERGED_ROUNDS, None, f"answer from x{factor:g}", rows, log)
         # the goal: the finest uniform mesh's error with a third of its elements and half its seconds
         finest = _finest_uniform([r for r in rows if r["scene"] == name])
-        goals: list[dict] = []
-        for timing in range(GOAL_TIMINGS):
-            if timing:
-                again = _uniform_run(name, shipped, comparison, finest["value"])
-                log(_converged_line(again), flush=True)
-                finest["seconds"] = min(finest["seconds"], again["seconds"])
-            timed: list[dict] = []
-            for factor in GOAL_STARTS:
-                _answer_run(name, shipped, comparison, factor, GOAL_ROUNDS, finest["elements"] // 3, GOAL, timed, log,
-                            every_round=False)
-            for goal, run in zip(goals, timed):
+        goals = _goal_runs(name, shipped, comparison, finest["elements"] // 3, log)
+        for _ in range(GOAL_TIMINGS - 1):  # timed again, alternating, each keeping its fastest
+            again = _uniform_run(name, shipped, comparison, finest["value"])
+            log(_converged_line(again), flush=True)
+            finest["seconds"] = min(finest["seconds"], again["seconds"])
+            for goal, run in zip(goals, _goal_runs(name, shipped, comparison, finest["elements"] // 3, log)):
                 goal["seconds"] = min(goal["seconds"], run["seconds"])
-            goals = goals or timed
         rows += goals
+    return rows
+
+
+def _goal_runs(name, shipped, comparison, budget: int, log) -> list[dict]:
+    """The goal's runs, one per start in ``GOAL_STARTS``, to ``budget`` elements."""
+    rows: list[dict] = []
+    for factor in GOAL_STARTS:
+        _answer_run(name, shipped, comparison, factor, GOAL_ROUNDS, budget, GOAL, rows, log, every_round=False)
     return rows
 
 
