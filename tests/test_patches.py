@@ -245,6 +245,39 @@ def test_a_split_emitter_draws_the_penumbra_a_centroid_shot_cannot():
     assert errors[False] > 0.15 and errors[True] < 0.03, errors
 
 
+def test_a_patch_under_a_cover_splits_where_it_leaves_it_and_stops_where_it_does_not():
+    # A glowing 1 m ceiling, one patch, with a panel hung 5 mm below its x < 0.75 part (its
+    # back to the ceiling). The patch's centroid is hidden, so it splits; its part under the
+    # panel would split down to single elements, every one of them shooting into the panel's
+    # back, where one more level shows that splitting uncovers nothing; its part beside the
+    # panel splits until its light leaves from where it is.
+    from hemirad.transport.shooters import back_face_share
+
+    from patches import quad, quads_mesh
+
+    ceiling = quad([0.0, 1.0, 0.0], [1.0, 0, 0], [0, 0, 1.0])  # faces down
+    panel = quad([-0.01, 0.995, -0.01], [0.76, 0, 0], [0, 0, 1.02])  # faces down
+    mesh = quads_mesh([ceiling, panel], [1.0 / 16, 0.5])
+    T = mesh.num_elements
+    rho = torch.full((T, 3), 0.5, dtype=torch.float64)
+    E = torch.zeros(T, 3, dtype=torch.float64)
+    E[mesh.surface == 0] = 1.0
+    tree = build_patches(mesh, np.full(T, 2.0))
+    solver = ProgressiveSolver(mesh, rho, E, 64, patches=PatchShooters(tree, torch.device("cpu"), hidden_centroid_test()),
+                               near_reach=0.0)
+    try:
+        nodes = solver.patches.cut(int(tree.patch[0]), solver.render, solver._node_corners)
+        power = torch.stack([solver.areas[solver.patches.members(node)].sum() for node in nodes])
+        into_back = sum(float(p) * back_face_share(solver.render(node)) for p, node in zip(power, nodes))
+    finally:
+        solver.close()
+    under = int(((mesh.surface == 0) & (mesh.centroids[:, 0] < 0.75)).sum())  # 384 elements
+    assert len(nodes) < under / 8  # measured: 28 (388 when the covered part split down to its elements)
+    # what the ceiling shoots into the panel's back: its covered part's power, not more
+    # (measured: 0.750 of it, and 0.749 from the 388; a centroid shot from the patch sends 1.00)
+    assert abs(into_back / float(power.sum()) - 0.75) < 0.03
+
+
 def test_an_object_can_set_its_own_patch_size():
     # The floating room's walls and floor at their default patches, the board's elements each
     # shooting on its own, and the lamp in one patch.

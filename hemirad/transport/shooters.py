@@ -7,7 +7,8 @@ follows the number of patches, not of elements. A patch shoots from one hemicube
 centroid unless a ``ShooterTest`` finds that point a poor stand-in for its extent (the
 paper's eq. 7 turned on the shooter: ``adaptive.shooter_split``); then it shoots from its
 quadrants, recursively, down to single elements as hierarchical radiosity refines the larger
-of two interacting patches (Hanrahan, Salzman & Aupperle 1991). A patch's choice is made the
+of two interacting patches (Hanrahan, Salzman & Aupperle 1991), except under a cover, where
+splitting uncovers nothing. A patch's choice is made the
 first time it shoots and kept: it depends on geometry only.
 """
 from __future__ import annotations
@@ -31,14 +32,29 @@ ShooterTest = Callable[[HemicubeView, torch.Tensor], bool]
 MAX_CHILDREN = max(CHILDREN.values())
 
 
-def hidden_centroid_test(share: float = 0.01) -> ShooterTest:
+#: A node whose hemicube sends more than this share of its power into back faces is hidden
+#: (``hidden_centroid_test``); one that sends all but this share, covered (``PatchShooters.cut``).
+HIDDEN_SHARE = 0.01
+
+
+def back_face_share(view: HemicubeView) -> float:
+    """The share of a hemicube's power that its pixels send into back faces."""
+    seen_back = (view.element >= 0) & ~view.front
+    return float(view.weight[seen_back].sum())
+
+
+def covered(view: HemicubeView) -> bool:
+    """Whether a hemicube sends all but ``HIDDEN_SHARE`` of its power into back faces."""
+    return back_face_share(view) >= 1.0 - HIDDEN_SHARE
+
+
+def hidden_centroid_test(share: float = HIDDEN_SHARE) -> ShooterTest:
     """A ``ShooterTest`` that needs no more than the render: split a node whose hemicube
     sends more than ``share`` of its power into back faces. Its centroid then lies where its
     elements are not: under an object that stands on it (a floor patch straddling a block's
     footprint), and would shoot into that object's inside."""
     def test(view: HemicubeView, corners: torch.Tensor) -> bool:
-        seen_back = (view.element >= 0) & ~view.front
-        return float(view.weight[seen_back].sum()) > share
+        return back_face_share(view) > share
 
     return test
 
@@ -217,17 +233,39 @@ class PatchShooters:
     def cut(self, patch: int, render: Callable[[int], HemicubeView], corners: Callable[[int], torch.Tensor]
             ) -> list[int]:
         """The nodes ``patch`` shoots from: its root, or where ``split_test`` says so, its
-        children's cuts. ``render(node)`` gives a node's view, ``corners(node)`` (K, 3) its
-        elements' corners."""
+        children's cuts; but a node that sends nearly all its power into back faces
+        (``covered``) and whose children all do too shoots from those children. ``render(node)``
+        gives a node's view, ``corners(node)`` (K, 3) its elements' corners.
+
+        Measured (floating, refined by the answer from the shipped sizes x2 to 3,426
+        elements): two ceiling patches behind the lamp, 5 mm above it, split into 124 nodes
+        (190 of the 445 hemicubes the last solve drew), 14 with the covered stop (16 of
+        269), for the same relative MSE (0.00008); the run 7.2 -> 5.5 s."""
         if patch in self.cuts:
             return self.cuts[patch]
+        rendered: dict[int, HemicubeView] = {}  # children rendered to see whether they are covered
+
+        def view(node: int) -> HemicubeView:
+            return rendered.pop(node) if node in rendered else render(node)
+
         nodes, pending = [], [int(self.tree.root[patch])]
         while pending:
             node = pending.pop()
             children = self.tree.children(node)
-            if children and self.split_test is not None and self.split_test(render(node), corners(node)):
-                pending += reversed(children)
+            seen = view(node) if children and self.split_test is not None else None
+            if seen is not None and self.split_test(seen, corners(node)):
                 self.shooter_splits += 1
+                if covered(seen):
+                    rendered.update((child, render(child)) for child in children)
+                if covered(seen) and all(covered(rendered[child]) for child in children):
+                    # under a cover (a lamp hung just below a ceiling): one level down shows
+                    # that splitting uncovers nothing; further down it would split to single
+                    # elements, every one of them shooting into the cover's back
+                    nodes += children
+                    for child in children:
+                        rendered.pop(child)
+                else:
+                    pending += reversed(children)
             else:
                 nodes.append(node)
         self.cuts[patch] = nodes

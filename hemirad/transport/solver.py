@@ -38,9 +38,10 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
-#: 10: rounds to an element budget by equal ratios; 9: refining by the answer, auto patches
+#: 11: a covered node's children shoot whole, rounds grow the mesh up to 2.5 times; 10:
+#: rounds to an element budget by equal ratios; 9: refining by the answer, auto patches
 #: capped and rounds two levels deep; 8: near fields made many shooters at once (rounding).
-ARITHMETIC = 10
+ARITHMETIC = 11
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
