@@ -7,7 +7,7 @@ follows the number of patches, not of elements. A patch shoots from one hemicube
 centroid unless a ``ShooterTest`` finds that point a poor stand-in for its extent (the
 paper's eq. 7 turned on the shooter: ``adaptive.shooter_split``); then it shoots from its
 quadrants, recursively, down to single elements as hierarchical radiosity refines the larger
-of two interacting patches (Hanrahan, Salzman & Aupperle 1991), except under a cover, where
+of two interacting patches (Hanrahan, Salzman & Aupperle 1991), but not under a cover, where
 splitting uncovers nothing. A patch's choice is made the
 first time it shoots and kept: it depends on geometry only.
 """
@@ -33,7 +33,7 @@ MAX_CHILDREN = max(CHILDREN.values())
 
 
 #: A node whose hemicube sends more than this share of its power into back faces is hidden
-#: (``hidden_centroid_test``); one that sends all but this share, covered (``PatchShooters.cut``).
+#: (``hidden_centroid_test``); one that sends all but this share may be covered (``under_cover``).
 HIDDEN_SHARE = 0.01
 
 
@@ -43,9 +43,30 @@ def back_face_share(view: HemicubeView) -> float:
     return float(view.weight[seen_back].sum())
 
 
-def covered(view: HemicubeView) -> bool:
-    """Whether a hemicube sends all but ``HIDDEN_SHARE`` of its power into back faces."""
-    return back_face_share(view) >= 1.0 - HIDDEN_SHARE
+def under_cover(view: HemicubeView, points: torch.Tensor, corners: torch.Tensor) -> bool:
+    """Whether ``view`` sends all but ``HIDDEN_SHARE`` of its power into back faces and every
+    one of ``points`` (N, 3), on the plane of its eye, lies under one of those back faces:
+    inside it, seen along the view's axis. ``corners`` (T, 3, 3): the elements the view is of.
+    Such points are covered (a lamp hung just below a ceiling): what leaves them goes into
+    the cover's back wherever it leaves from."""
+    if back_face_share(view) < 1.0 - HIDDEN_SHARE:
+        return False
+    cover = torch.unique(view.element[(view.element >= 0) & ~view.front])
+    axes = view.frame[:2]  # (2, 3): the plane's t and b
+    a, b, c = ((corners.index_select(0, cover)[:, k] - view.eye) @ axes.T for k in range(3))  # (C, 2) each
+    p = ((points - view.eye) @ axes.T)[:, None, :] - a  # (N, C, 2)
+    ab, ac = b - a, c - a
+    area = ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]  # (C,) twice the signed area, as seen along the axis
+    seen = area.abs() > 1e-12 * (ab.square().sum(1) + ac.square().sum(1))  # not edge-on
+    area = torch.where(seen, area, 1.0)
+    u = (p[..., 0] * ac[:, 1] - p[..., 1] * ac[:, 0]) / area
+    v = (ab[:, 0] * p[..., 1] - ab[:, 1] * p[..., 0]) / area
+    inside = seen & (u >= -_INSIDE) & (v >= -_INSIDE) & (u + v <= 1.0 + _INSIDE)  # (N, C)
+    return bool(inside.any(1).all())
+
+
+# Barycentric slack of ``under_cover``'s test: a point on a cover's outline lies under it.
+_INSIDE = 1e-6
 
 
 def hidden_centroid_test(share: float = HIDDEN_SHARE) -> ShooterTest:
@@ -230,44 +251,30 @@ class PatchShooters:
             members = self._members[node] = flatnonzero((leaf >= lo) & (leaf < hi))
         return members
 
-    def cut(self, patch: int, render: Callable[[int], HemicubeView], corners: Callable[[int], torch.Tensor]
-            ) -> list[int]:
+    def cut(self, patch: int, render: Callable[[int], HemicubeView], corners: torch.Tensor) -> list[int]:
         """The nodes ``patch`` shoots from: its root, or where ``split_test`` says so, its
-        children's cuts; but a node that sends nearly all its power into back faces
-        (``covered``) and whose children all do too shoots from those children. ``render(node)``
-        gives a node's view, ``corners(node)`` (K, 3) its elements' corners.
+        children's cuts; but not a node whose elements all lie ``under_cover``: splitting it
+        would go down to single elements that all shoot into the cover's back.
+        ``render(node)`` gives a node's view; ``corners`` (T, 3, 3) are the elements'.
 
         Measured (floating, refined by the answer from the shipped sizes x2 to 3,426
-        elements): two ceiling patches behind the lamp, 5 mm above it, split into 124 nodes
-        (190 of the 445 hemicubes the last solve drew), 14 with the covered stop (16 of
-        269), for the same relative MSE (0.00008); the run 7.2 -> 5.5 s."""
+        elements, rounds at most doubling): two ceiling patches behind the lamp, 5 mm above
+        it, split into 124 nodes without the cover test (190 of the 445 hemicubes the last
+        solve drew), into 8 with it (261 hemicubes), for the same relative MSE (0.00008)."""
         if patch in self.cuts:
             return self.cuts[patch]
-        rendered: dict[int, HemicubeView] = {}  # children rendered to see whether they are covered
-
-        def view(node: int) -> HemicubeView:
-            return rendered.pop(node) if node in rendered else render(node)
-
         nodes, pending = [], [int(self.tree.root[patch])]
         while pending:
             node = pending.pop()
             children = self.tree.children(node)
-            seen = view(node) if children and self.split_test is not None else None
-            if seen is not None and self.split_test(seen, corners(node)):
-                self.shooter_splits += 1
-                if covered(seen):
-                    rendered.update((child, render(child)) for child in children)
-                if covered(seen) and all(covered(rendered[child]) for child in children):
-                    # under a cover (a lamp hung just below a ceiling): one level down shows
-                    # that splitting uncovers nothing; further down it would split to single
-                    # elements, every one of them shooting into the cover's back
-                    nodes += children
-                    for child in children:
-                        rendered.pop(child)
-                else:
+            if children and self.split_test is not None:
+                points = corners.index_select(0, self.members(node)).reshape(-1, 3)
+                seen = render(node)
+                if self.split_test(seen, points) and not under_cover(seen, points, corners):
                     pending += reversed(children)
-            else:
-                nodes.append(node)
+                    self.shooter_splits += 1
+                    continue
+            nodes.append(node)
         self.cuts[patch] = nodes
         return nodes
 

@@ -38,7 +38,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
-#: 11: a covered node's children shoot whole, rounds grow the mesh up to 2.5 times; 10:
+#: 11: a covered node shoots whole, rounds grow the mesh up to 2.5 times; 10:
 #: rounds to an element budget by equal ratios; 9: refining by the answer, auto patches
 #: capped and rounds two levels deep; 8: near fields made many shooters at once (rounding).
 ARITHMETIC = 11
@@ -347,7 +347,7 @@ class ProgressiveSolver:
             patch = patches.strongest(state.unshot * self.areas[:, None])
         if patch is None:
             return None
-        nodes = patches.cut(patch, self.render_and_keep, self._node_corners)
+        nodes = patches.cut(patch, self.render_and_keep, self.mesh.corners)
         for node in nodes:
             with self.profiler.phase("update"):
                 members = patches.members(node)
@@ -372,10 +372,6 @@ class ProgressiveSolver:
         self._views.clear()
         state.shots += 1
         return patch
-
-    def _node_corners(self, node: int) -> torch.Tensor:
-        """(3K, 3) the corners of ``node``'s elements, for the shooter tests (``PatchShooters.cut``)."""
-        return self.mesh.corners_of(self.patches.members(node)).reshape(-1, 3)
 
     def _sweep(self, limit: int | None = None) -> int | None:
         """Every patch holding unshot power shoots it, all at once (``sweeps``); with ``limit``,
@@ -410,7 +406,7 @@ class ProgressiveSolver:
         for i, patch in enumerate(order):
             if i + 1 < len(order):  # drawn while this patch's hemicube is decoded and used
                 self._prefetch(order[i + 1])
-            nodes = patches.cut(patch, self.render_and_keep, self._node_corners)
+            nodes = patches.cut(patch, self.render_and_keep, self.mesh.corners)
             if making is not None and self._step(making):
                 making = None
             for node in nodes:
