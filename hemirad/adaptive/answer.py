@@ -235,9 +235,9 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
     """Alternate shooting to the stopping rule (``shoot_on``) and refining where the answer
     is worst, until the estimated relative error is under ``tolerance``, the mesh has
     ``max_elements``, or ``rounds`` refinements were made. Each round may at most grow the
-    element count 2.5 times (``ROUND_SHARE``), so the estimate is renewed as the mesh learns; the rounds to the
-    budget grow it by equal ratios (``round_splits``), and grading's extra splits never
-    take it past the budget.
+    element count 2.5 times (``ROUND_SHARE``), so the estimate is renewed as the mesh
+    learns; the rounds to the budget grow it by equal ratios (``round_splits``), and
+    grading's extra splits never take it past the budget.
 
     ``refiner`` supplies the split pattern, the 2:1 grading and the depth and size limits.
     ``patches_for()``: the patches of the solver's mesh just split, to solve it afresh with

@@ -8,8 +8,8 @@ centroid unless a ``ShooterTest`` finds that point a poor stand-in for its exten
 paper's eq. 7 turned on the shooter: ``adaptive.shooter_split``); then it shoots from its
 quadrants, recursively, down to single elements as hierarchical radiosity refines the larger
 of two interacting patches (Hanrahan, Salzman & Aupperle 1991), but not under a cover, where
-splitting uncovers nothing. A patch's choice is made the
-first time it shoots and kept: it depends on geometry only.
+splitting uncovers nothing. A patch's choice is made the first time it shoots and kept: it
+depends on geometry only.
 """
 from __future__ import annotations
 
@@ -35,6 +35,8 @@ MAX_CHILDREN = max(CHILDREN.values())
 #: A node whose hemicube sends more than this share of its power into back faces is hidden
 #: (``hidden_centroid_test``); one that sends all but this share may be covered (``under_cover``).
 HIDDEN_SHARE = 0.01
+# Barycentric slack of ``under_cover``'s test: a point on a cover's outline lies under it.
+_INSIDE = 1e-6
 
 
 def back_face_share(view: HemicubeView) -> float:
@@ -63,10 +65,6 @@ def under_cover(view: HemicubeView, points: torch.Tensor, corners: torch.Tensor)
     v = (ab[:, 0] * p[..., 1] - ab[:, 1] * p[..., 0]) / area
     inside = seen & (u >= -_INSIDE) & (v >= -_INSIDE) & (u + v <= 1.0 + _INSIDE)  # (N, C)
     return bool(inside.any(1).all())
-
-
-# Barycentric slack of ``under_cover``'s test: a point on a cover's outline lies under it.
-_INSIDE = 1e-6
 
 
 def hidden_centroid_test(share: float = HIDDEN_SHARE) -> ShooterTest:
