@@ -39,10 +39,14 @@ HIDDEN_SHARE = 0.01
 _INSIDE = 1e-6
 
 
+def _seen_back(view: HemicubeView) -> torch.Tensor:
+    """(P,) bool the pixels of ``view`` that see a back face."""
+    return (view.element >= 0) & ~view.front
+
+
 def back_face_share(view: HemicubeView) -> float:
     """The share of a hemicube's power that its pixels send into back faces."""
-    seen_back = (view.element >= 0) & ~view.front
-    return float(view.weight[seen_back].sum())
+    return float(view.weight[_seen_back(view)].sum())
 
 
 def under_cover(view: HemicubeView, points: torch.Tensor, corners: torch.Tensor) -> bool:
@@ -51,15 +55,18 @@ def under_cover(view: HemicubeView, points: torch.Tensor, corners: torch.Tensor)
     inside it, seen along the view's axis. ``corners`` (T, 3, 3): the elements the view is of.
     Such points are covered (a lamp hung just below a ceiling): what leaves them goes into
     the cover's back wherever it leaves from."""
-    if back_face_share(view) < 1.0 - HIDDEN_SHARE:
+    seen_back = _seen_back(view)
+    if float(view.weight[seen_back].sum()) < 1.0 - HIDDEN_SHARE:
         return False
-    cover = torch.unique(view.element[(view.element >= 0) & ~view.front])
+    cover = torch.unique(view.element[seen_back])
     axes = view.frame[:2]  # (2, 3): the plane's t and b
     a, b, c = ((corners.index_select(0, cover)[:, k] - view.eye) @ axes.T for k in range(3))  # (C, 2) each
     p = ((points - view.eye) @ axes.T)[:, None, :] - a  # (N, C, 2)
     ab, ac = b - a, c - a
     area = ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]  # (C,) twice the signed area, as seen along the axis
-    seen = area.abs() > 1e-12 * (ab.square().sum(1) + ac.square().sum(1))  # not edge-on
+    # not edge-on (a wall met behind the cover projects to a sliver whose rounding would hold
+    # points: ``geometry.mesh.barycentric`` has no such guard, and used here it did)
+    seen = area.abs() > 1e-12 * (ab.square().sum(1) + ac.square().sum(1))
     area = torch.where(seen, area, 1.0)
     u = (p[..., 0] * ac[:, 1] - p[..., 1] * ac[:, 0]) / area
     v = (ab[:, 0] * p[..., 1] - ab[:, 1] * p[..., 0]) / area
