@@ -440,7 +440,9 @@ def test_a_block_beside_a_patched_conforming_floor_gets_the_floors_light():
     """Floor patches that reach round a block's footprint shot past the block's side from a
     centroid the footprint's rim does not see the same: the Cornell box's tall block, 8 cm
     elements, contact meshing, came out 11% darker than with every element shooting. Its
-    rim's elements shoot alone: within 1% (measured 0.3%)."""
+    rim's elements shoot alone: within 2% (measured 1.5%; 0.3% with G's near totals, whose
+    choice moves the block's other sides about as much: every element shooting has no near
+    field, so it is the bug's yardstick, not the truth)."""
     means = {}
     for patch_size in ("auto", "none"):
         scene = load_with_contacts("cornell_box").with_element_sizes_scaled(2.0)
@@ -450,4 +452,4 @@ def test_a_block_beside_a_patched_conforming_floor_gets_the_floors_light():
         mesh = result.mesh
         side = mesh.surface == mesh.surface_names.index("tall_block.side0")
         means[patch_size] = float((result.display_radiosity[side].mean(1) * mesh.areas[side]).sum() / mesh.areas[side].sum())
-    assert means["auto"] == pytest.approx(means["none"], rel=0.01), means
+    assert means["auto"] == pytest.approx(means["none"], rel=0.02), means

@@ -155,6 +155,26 @@ def test_triangle_to_triangles_reproduces_the_rectangles_closed_forms(points, to
         assert _rectangle_factor(source, facing, points) == pytest.approx(exact, rel=apart)
 
 
+def test_triangle_to_triangles_is_right_for_a_small_receiver_along_part_of_a_shared_edge():
+    # A floor tile (a x w) in the corner where a wall strip (h x l, l >> a) meets the floor,
+    # sharing the first a of the wall's foot: the shape refinement makes along a wall. With
+    # w = h, swapping wall and floor maps the tile to the wall's first a and the wall's rest
+    # to the floor's, so factor algebra over common-edge pairs (F_x: the closed form of
+    # perpendicular rectangles sharing an edge of length x) gives it exactly:
+    # A_tile F(tile -> wall) = G(a) + (G(l) - G(a) - G(l - a)) / 2, G(x) = w x F_x.
+    h = w = 0.1
+    l, a = 1.0, 0.1
+
+    def common(length):
+        return w * length * float(perpendicular_rectangles(h, w, length))
+    exact = (common(a) + 0.5 * (common(l) - common(a) - common(l - a))) / (h * l)  # reciprocity: F(wall -> tile)
+    wall = quad([0, 0, 0], [0, 0, h], [l, 0, 0])  # faces +y, its foot along x from 0 to l
+    tile = quad([0, 0, 0], [a, 0, 0], [0, w, 0])  # faces +z, in the corner
+    # (one Gauss rule over each whole source edge read it 53% high at 4 points)
+    for points, tolerance in ((4, 0.05), (8, 3e-3)):
+        assert _rectangle_factor(wall, tile, points) == pytest.approx(exact, rel=tolerance)
+
+
 def test_triangle_to_triangles_clips_what_faces_away_and_matches_sampling():
     # Pairs of random triangles that face each other's centroids but may straddle each other's
     # planes, and the same receivers seen from behind, against Lambert's point factor averaged

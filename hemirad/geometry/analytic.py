@@ -162,6 +162,26 @@ def _closed_polygons(triangles: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     return closed.index_copy(0, cut, torch.gather(polygon, 1, index[..., None].expand(len(cut), 5, 3)))
 
 
+def _breakpoint_nodes(origin: torch.Tensor, direction: torch.Tensor, length: torch.Tensor, start_r: torch.Tensor,
+                      direction_r: torch.Tensor, length_r: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(E, 3 n) Gauss nodes along each of E source edges (from ``origin`` (E, 3) along unit
+    ``direction`` (E, 3), ``length`` (E,)) and (E, 3 n) their interval's half-length, for the
+    n nodes ``x`` on [-1, 1]: n in each of the three pieces the edge is cut into where the
+    feet of its receiver edge's ends (from ``start_r`` along ``direction_r``, ``length_r``)
+    fall on it. The inner integral's slope has a logarithmic kink where the source point
+    passes an end of the receiver edge (close to it when two surfaces meet along a line),
+    which one rule over the whole edge smooths over: against 256 points, a 3 cm floor
+    triangle beside a 6 cm wall triangle it touches read up to 9.7% off at 4 points over
+    the edge, 4.2% at 8, 1.2% at 16."""
+    feet = torch.stack([((start_r - origin) * direction).sum(1),
+                        ((start_r + length_r[:, None] * direction_r - origin) * direction).sum(1)], 1)
+    feet = torch.minimum(feet.clamp(min=0.0), length[:, None]).sort(1).values  # (E, 2)
+    ends = torch.cat([torch.zeros_like(feet[:, :1]), feet, length[:, None]], 1)  # (E, 4)
+    low, half = ends[:, :3], 0.5 * (ends[:, 1:] - ends[:, :3])  # (E, 3) each piece's start and half-length
+    nodes = (low[:, :, None] + half[:, :, None] * (x + 1.0)).reshape(len(origin), -1)
+    return nodes, half.repeat_interleave(len(x), 1)
+
+
 def triangle_to_triangles(sources: torch.Tensor, receivers: torch.Tensor, points: int = 4,
                           chunk: int = 1 << 16) -> torch.Tensor:
     """Unoccluded area-to-area form factors F(s -> r) between pairs of triangles.
@@ -173,15 +193,18 @@ def triangle_to_triangles(sources: torch.Tensor, receivers: torch.Tensor, points
         A_s F(s -> r) = 1/(2 pi) sum_{edges i of s, j of r} (a_i . b_j) int_i int_j ln|x - y| dy dx,
 
     with a_i, b_j the edges' unit directions, is evaluated with the inner integral in closed
-    form and the outer by Gauss-Legendre along each source edge. Triangles that touch (a
-    shared edge or corner) are handled as well as distant ones: the inner integral stays
-    finite and the outer's integrand continuous.
+    form and the outer by Gauss-Legendre along each source edge, cut where the receiver
+    edge's ends project onto it (``_breakpoint_nodes``). Triangles that touch (a shared edge
+    or corner, or a small one at the foot of a large one) are handled as well as distant
+    ones: the inner integral stays finite and the outer's integrand is smooth on each piece.
 
     Args:
         sources, receivers: (m, 3, 3) the pairs' corners, each wound about its front's normal.
-        points: Gauss points along each source edge. Measured on a box's elements against
-            16 points: pairs that touch 2% at 3 points, 0.7% at 4, 0.05% at 8; pairs apart
-            by half a side or more, 0.05% at 3, 0.01% at 4.
+        points: Gauss points along each of a source edge's three pieces. Measured against
+            closed forms: a 10 cm tile in the corner of a 1 m wall strip that it touches along
+            a tenth of its foot 4.2% at 4 points, 0.24% at 8 (53% at 4 over the whole edge);
+            3 cm floor triangles beside a 6 cm wall triangle, against 256 points: at most
+            1.2% at 4 points, 0.09% at 8 (9.7% and 4.2% over the whole edge).
         chunk: edge pairs times points evaluated at once.
     Returns:
         (m,) F(s -> r) >= 0; 0 for coplanar pairs and pairs that face away.
@@ -210,15 +233,16 @@ def triangle_to_triangles(sources: torch.Tensor, receivers: torch.Tensor, points
     source_edge, receiver_edge = pair * 4 + i, pair * 4 + j  # into the (4 m,) flattened edges
     p, a, L = p.reshape(-1, 3), a.reshape(-1, 3), L.reshape(-1)
     q, b, M = q.reshape(-1, 3), b.reshape(-1, 3), M.reshape(-1)
-    weight = along.reshape(-1).index_select(0, source_edge * 4 + j) * 0.5 * L.index_select(0, source_edge)
+    along = along.reshape(-1).index_select(0, source_edge * 4 + j)
     x, w = (t.to(device) for t in _gauss_legendre(points))
     total = torch.zeros(m, dtype=sources.dtype, device=device)
-    step = max(1, chunk // points)
+    step = max(1, chunk // (3 * points))
     for start in range(0, len(pair), step):
         se, re = source_edge[start:start + step], receiver_edge[start:start + step]
-        s = (0.5 * (x + 1.0)) * L.index_select(0, se)[:, None]  # (E, n) the nodes along the source edge
-        origin, direction = p.index_select(0, se), a.index_select(0, se)
+        origin, direction, length = p.index_select(0, se), a.index_select(0, se), L.index_select(0, se)
+        start_r, direction_r, length_r = q.index_select(0, re), b.index_select(0, re), M.index_select(0, re)
+        s, ds = _breakpoint_nodes(origin, direction, length, start_r, direction_r, length_r, x)  # (E, 3 n)
         X, Y, Z = (origin[:, c:c + 1] + s * direction[:, c:c + 1] for c in range(3))
-        inner = _log_distance_to_segment(X, Y, Z, q.index_select(0, re), b.index_select(0, re), M.index_select(0, re))
-        total.index_add_(0, pair[start:start + step], (inner @ w) * weight[start:start + step])
+        inner = _log_distance_to_segment(X, Y, Z, start_r, direction_r, length_r)
+        total.index_add_(0, pair[start:start + step], (inner * ds * w.repeat(3)).sum(1) * along[start:start + step])
     return (total / (2.0 * math.pi * area_s.clamp(min=1e-300))).clamp(min=0.0)

@@ -39,11 +39,10 @@ How much of a source's light its near receivers take (``TOTALS``):
   (1 - near) / (1 - G's near), the far receivers taking at most ``FAR_SCALE_MAX`` times G's
   numbers (the excess then goes to the near ones: what the source sees and G does not is
   in no receiver's row). Rows sum to at most 1, so nothing is created. It keeps a closed box
-  right beyond the near field (0.9% per element where ``hemicube`` leaves 5.4%), but against
-  the path-traced references it is worse (Cornell box relative MSE 0.0029 against 0.0025):
-  a source under an object standing on it (a floor element straddling a block's footprint)
-  counts as wholly exposed, and the pictures' Gouraud shading at a surface's border prefers
-  the old values (docs/DESIGN.md §1.4).
+  right beyond the near field (0.9% per element where ``hemicube`` leaves 5.4%), and keeps
+  the floor at a wall's foot as bright as the wall's edge makes it. But a source under an
+  object standing on it (a floor element straddling a block's footprint) counts as wholly
+  exposed: it is the choice where contacts are meshed (``assembly.near_totals``).
 """
 from __future__ import annotations
 
@@ -65,8 +64,8 @@ TOTALS = ("hemicube", "area")
 #: Pairs closer than this many source sides (their gap: the centroids' distance less both
 #: radii) get the contour integral.
 CONTOUR_GAP = 1.0
-#: Gauss points along a source edge (``triangle_to_triangles``: about 0.2% of the factor for
-#: triangles that touch, 0.01% for those apart by half a side).
+#: Gauss points along each piece of a source edge (``triangle_to_triangles``: at most about 1%
+#: of the factor for triangles that touch, 0.01% for those apart by half a side).
 GAUSS_POINTS = 4
 #: Contour integrals done between two pauses of ``near_field_steps`` (about 4 ms of work).
 CONTOUR_CHUNK = 1024
