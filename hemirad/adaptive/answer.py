@@ -204,7 +204,8 @@ def round_splits(elements: int, max_elements: int, children: int, rounds_left: i
     adds ``children`` - 1), ``rounds_left`` rounds at most: ``ROUND_SHARE`` of them where the
     budget needs more rounds than that; else the rounds it needs, each growing the mesh by at
     most 1 + (``children`` - 1) ``ROUND_SHARE``, grow it by equal ratios, so no solve is spent
-    on a last sliver of the budget; none where the budget leaves under ``MIN_ROUND_GROWTH``. Measured (runs to a third of the finest uniform mesh's
+    on a last sliver of the budget; none where the budget leaves less than
+    ``MIN_ROUND_GROWTH`` of the mesh. Measured (runs to a third of the finest uniform mesh's
     elements from x2, rounds at most doubling; relMSE, seconds against that mesh's): rounds
     of ``ROUND_SHARE`` and the rest in a last one, Cornell box 0.00032 in 40%, floating
     0.00008 in 73%, office 0.00012 in 48%; equal ratios 0.00030 in 36%, 0.00008 in 59%,
@@ -212,7 +213,7 @@ def round_splits(elements: int, max_elements: int, children: int, rounds_left: i
     0.00012 in 56%, 0.00017 in 33% (office's round was too large for the answer it was
     ranked on)."""
     room = (max_elements - elements) // (children - 1)
-    if room * (children - 1) < MIN_ROUND_GROWTH * elements or room <= 0:
+    if room <= 0 or room * (children - 1) < MIN_ROUND_GROWTH * elements:
         return 0
     ratio = max_elements / elements
     rounds = max(1, math.ceil(math.log(ratio) / math.log(1.0 + (children - 1) * ROUND_SHARE) - 1e-9))

@@ -172,7 +172,7 @@ def _breakpoint_nodes(origin: torch.Tensor, direction: torch.Tensor, length: tor
     passes an end of the receiver edge (close to it when two surfaces meet along a line),
     which one rule over the whole edge smooths over: against 256 points, a 3 cm floor
     triangle beside a 6 cm wall triangle it touches read up to 9.7% off at 4 points over
-    the edge, 4.2% at 8, 1.2% at 16."""
+    the whole edge (4.2% at 8, 1.2% at 16), 1.2% at 4 points a piece."""
     feet = torch.stack([((start_r - origin) * direction).sum(1),
                         ((start_r + length_r[:, None] * direction_r - origin) * direction).sum(1)], 1)
     feet = torch.minimum(feet.clamp(min=0.0), length[:, None]).sort(1).values  # (E, 2)
