@@ -358,25 +358,26 @@ def errors_beside_blocks(result) -> np.ndarray:
 def test_the_answer_resolves_the_floor_beside_the_cornell_blocks():
     """The default adaptive run, refinement judged on the answer (contacts meshed, auto), three
     rounds from the shipped mesh: 1 cm outside the blocks the floor is within 5% of the path
-    tracer at most points (measured: 22 of 26, median 1.5%, 39,187 elements; 12 of 26 without
-    contacts)."""
+    tracer at nearly every point (measured: 25 of 26, median 1.1%, 39,292 elements; 22 of 26
+    and 1.5% before the near field's contour integral was cut at the receiver edges' feet;
+    12 of 26 without contacts)."""
     scene = hemirad.load_scene("cornell_box")
     scene.solver.unshot_fraction = 1e-3
     scene.refine.pattern, scene.refine.criterion, scene.refine.rounds, scene.refine.tolerance = \
         "pattern2", "answer", 3, 0.0
     errors = errors_beside_blocks(hemirad.solve(scene, progress=None))
     assert len(errors) >= 20
-    assert (np.abs(errors) <= 0.05).mean() >= 0.75, errors
-    assert np.median(np.abs(errors)) < 0.04, errors
+    assert (np.abs(errors) <= 0.05).mean() >= 0.9, errors
+    assert np.median(np.abs(errors)) < 0.025, errors
 
 
 @pytest.mark.slow
 def test_floor_beside_the_cornell_blocks_matches_the_reference():
     """1 cm outside the blocks, with floor and blocks meshed at 1 cm: with contact meshing
-    most points are within 5% of the path tracer (measured: 20 of 26, mean error 3.9%);
-    without it, where floor elements straddle the footprints, most are not (11 of 26, 7.2%). (At the shipped 4 cm elements neither is
-    within 5%: the floor's radiosity changes too fast there for 4 cm elements; see the
-    README.)"""
+    most points are within 5% of the path tracer (measured: 24 of 26, mean error 2.7%);
+    without it, where floor elements straddle the footprints, fewer are (15 of 26, 5.4%).
+    (At the shipped 4 cm elements neither is within 5%: the floor's radiosity changes too
+    fast there for 4 cm elements; see the README.)"""
     conforming = beside_blocks_errors(True, 10.0)
     straddling = beside_blocks_errors(False, 10.0)
     assert len(conforming) >= 20
