@@ -374,16 +374,18 @@ def test_the_answer_resolves_the_floor_beside_the_cornell_blocks():
 @pytest.mark.slow
 def test_floor_beside_the_cornell_blocks_matches_the_reference():
     """1 cm outside the blocks, with floor and blocks meshed at 1 cm: with contact meshing
-    most points are within 5% of the path tracer (measured: 24 of 26, mean error 2.7%);
-    without it, where floor elements straddle the footprints, fewer are (15 of 26, 5.4%).
+    nearly every point is within 5% of the path tracer (measured: 24 of 26, mean error 2.7%);
+    without it, where floor elements straddle the footprints, fewer are, with twice the error
+    (15 of 26, 5.4%; 11 of 26 and 7.2% before the near field's contour integral was cut at
+    the receiver edges' feet).
     (At the shipped 4 cm elements neither is within 5%: the floor's radiosity changes too
     fast there for 4 cm elements; see the README.)"""
     conforming = beside_blocks_errors(True, 10.0)
     straddling = beside_blocks_errors(False, 10.0)
     assert len(conforming) >= 20
     within = (np.abs(conforming) <= 0.05).mean()
-    assert within >= 0.7, conforming
-    assert (np.abs(straddling) <= 0.05).mean() < 0.6, straddling
+    assert within >= 0.85, conforming
+    assert (np.abs(straddling) <= 0.05).mean() < within, straddling
     assert np.abs(conforming).mean() < 0.6 * np.abs(straddling).mean()
 
 
