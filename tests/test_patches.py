@@ -10,10 +10,10 @@ import hemirad
 from hemirad.adaptive.shooter_split import point_source_test
 from hemirad.assembly import NEAR_REACH, make_solver
 from hemirad.geometry.patches import build_patches, element_sides
-from hemirad.transport.shooters import PatchShooters, either, hidden_centroid_test
+from hemirad.transport.shooters import PatchShooters, back_face_share, either, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver
 
-from patches import assert_power_balances, closed_box, open_box, random_materials
+from patches import assert_power_balances, closed_box, open_box, quad, quads_mesh, random_materials
 
 
 def patch_solver(mesh, rho, E, patch_size, resolution=32, overshoot=True, split_test=None, near_reach=NEAR_REACH,
@@ -200,8 +200,6 @@ def test_a_split_emitter_draws_the_penumbra_a_centroid_shot_cannot():
     # centroids is what is left).
     from hemirad.geometry.analytic import point_to_polygon
 
-    from patches import quad, quads_mesh
-
     emitter = quad([-0.2, 1.0, -0.2], [0.4, 0, 0], [0, 0, 0.4])  # faces down
     blocker = quad([-0.15, 0.5, -0.15], [0, 0, 0.3], [0.3, 0, 0])  # faces up
     floor = quad([-0.8, 0.0, -0.02], [0, 0, 0.04], [1.6, 0, 0])  # faces up
@@ -251,10 +249,6 @@ def test_a_patch_under_a_cover_splits_where_it_leaves_it_and_stops_where_it_does
     # panel would split down to single elements, every one of them shooting into the panel's
     # back, where it lies wholly under the panel; its part beside the panel splits until its
     # light leaves from where it is.
-    from hemirad.transport.shooters import back_face_share
-
-    from patches import quad, quads_mesh
-
     ceiling = quad([0.0, 1.0, 0.0], [1.0, 0, 0], [0, 0, 1.0])  # faces down
     panel = quad([-0.01, 0.995, -0.01], [0.76, 0, 0], [0, 0, 1.02])  # faces down
     mesh = quads_mesh([ceiling, panel], [1.0 / 16, 0.5])

@@ -235,6 +235,7 @@ def triangle_to_triangles(sources: torch.Tensor, receivers: torch.Tensor, points
     q, b, M = q.reshape(-1, 3), b.reshape(-1, 3), M.reshape(-1)
     along = along.reshape(-1).index_select(0, source_edge * 4 + j)
     x, w = (t.to(device) for t in _gauss_legendre(points))
+    w = w.repeat(3)  # the same rule on each of an edge's three pieces (``_breakpoint_nodes``)
     total = torch.zeros(m, dtype=sources.dtype, device=device)
     step = max(1, chunk // (3 * points))
     for start in range(0, len(pair), step):
@@ -244,5 +245,5 @@ def triangle_to_triangles(sources: torch.Tensor, receivers: torch.Tensor, points
         s, ds = _breakpoint_nodes(origin, direction, length, start_r, direction_r, length_r, x)  # (E, 3 n)
         X, Y, Z = (origin[:, c:c + 1] + s * direction[:, c:c + 1] for c in range(3))
         inner = _log_distance_to_segment(X, Y, Z, start_r, direction_r, length_r)
-        total.index_add_(0, pair[start:start + step], (inner * ds * w.repeat(3)).sum(1) * along[start:start + step])
+        total.index_add_(0, pair[start:start + step], (inner * ds * w).sum(1) * along[start:start + step])
     return (total / (2.0 * math.pi * area_s.clamp(min=1e-300))).clamp(min=0.0)
