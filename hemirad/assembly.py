@@ -89,7 +89,7 @@ def make_patches(scene: Scene, mesh: Mesh, device: torch.device) -> PatchShooter
     """The patches of the initial ``mesh`` as ``scene.solver`` asks, with the shooter tests."""
     owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]  # (T,) each element's object
     return PatchShooters(build_patches(mesh, patch_sizes(scene, mesh, owner), owner), device, shooter_test(scene),
-                         source_corners=mesh.corners)
+                         source_corners=mesh.corners, eye_level=scene.emitter_eye_level)
 
 
 def shooter_test(scene: Scene) -> ShooterTest:
@@ -116,7 +116,8 @@ def refined_patches(scene: Scene, solver: ProgressiveSolver, saved: dict | None 
     alone = (solver.emission > 0).any(dim=1).cpu().numpy() | (patch_sizes(scene, mesh, owner, rims=False) <= 0)
     group[alone] = group.max() + 1 + np.flatnonzero(alone)
     return PatchShooters(group_patches(mesh, group), solver.device, shooter_test(scene), source=source,
-                         source_corners=patches.source_corners, source_split=scene.refine.pattern)
+                         source_corners=patches.source_corners, source_split=scene.refine.pattern,
+                         eye_level=scene.emitter_eye_level)
 
 
 def scene_extent(mesh: Mesh) -> float:

@@ -153,6 +153,7 @@ BAD = {
     "exposure word": (lambda d: set_key(d, "camera.exposure", "bright"), ["camera.exposure", "auto"]),
     "odd resolution": (lambda d: d.update(solver={"resolution": 33}), ["solver.resolution", "even"]),
     "unknown solver key": (lambda d: d.update(solver={"max_shot": 3}), ["solver.max_shot", "max_shots"]),
+    "too many eyes": (lambda d: d.update(solver={"emitter_eyes": 5}), ["solver.emitter_eyes", "auto", "0 to 4"]),
     "no light": (lambda d: set_key(d, "materials.lamp.emission", 0), ["no light"]),
     "light unused": (lambda d: set_key(d, "objects.1.material", "white"), ["no light", "lamp"]),
     "duplicate names": (lambda d: [o.update(name="wall") for o in d["objects"]], ["objects[1].name", "wall"]),

@@ -10,16 +10,16 @@ import hemirad
 from hemirad.adaptive.shooter_split import point_source_test
 from hemirad.assembly import NEAR_REACH, make_solver
 from hemirad.geometry.patches import build_patches, element_sides
-from hemirad.transport.shooters import PatchShooters, back_face_share, either, hidden_centroid_test
+from hemirad.transport.shooters import PatchShooters, back_face_share, either, eye_points, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver
 
 from patches import assert_power_balances, closed_box, open_box, quad, quads_mesh, random_materials
 
 
 def patch_solver(mesh, rho, E, patch_size, resolution=32, overshoot=True, split_test=None, near_reach=NEAR_REACH,
-                 **options):
+                 eye_level=0, **options):
     tree = build_patches(mesh, np.full(mesh.num_elements, patch_size))
-    shooters = PatchShooters(tree, torch.device("cpu"), split_test)
+    shooters = PatchShooters(tree, torch.device("cpu"), split_test, eye_level=eye_level)
     return ProgressiveSolver(mesh, rho, E, resolution, patches=shooters, overshoot=overshoot, near_reach=near_reach,
                              **options)
 
@@ -48,17 +48,19 @@ def test_patches_tile_each_plane_and_their_trees_reach_every_element():
 
 @pytest.mark.parametrize("totals", ["hemicube", "area"])
 def test_power_balances_with_overshooting_and_split_shooters(totals):
-    # An open box (its top removed), a glowing corner, both shooter tests on: received +
-    # unshot + escaped = emitted to 1e-9, with the unshot power partly negative.
+    # An open box (its top removed), a glowing corner, both shooter tests on, the emitting
+    # patches shooting from eyes: received + unshot + escaped = emitted to 1e-9, with the
+    # unshot power partly negative.
     mesh = open_box(element_size=0.25)
     rho, E = random_materials(mesh.num_elements, seed=1, span=0.7, low=0.2, glowing=8)
     solver = patch_solver(mesh, rho, E, 0.5, split_test=either(hidden_centroid_test(), point_source_test(0.5)),
-                          near_totals=totals)
+                          near_totals=totals, eye_level=1)
     try:
         state = solver.run(max_shots=150, unshot_fraction=0.0)
     finally:
         solver.close()
     assert solver.patches.shooter_splits > 0 and bool((state.unshot < 0).any())
+    assert any(solver._eyes(node) is not None for cut in solver.patches.cuts.values() for node in cut)
     emitted = (E * mesh.areas[:, None]).sum(0)
     assert_power_balances(state, mesh.areas, rho, E, emitted, rtol=1e-9)
     assert bool((state.escaped > 0.05 * emitted).all())  # the open top lets light out
@@ -191,19 +193,17 @@ def test_patches_converge_in_fewer_shots_and_renders_than_elements():
     assert counts["auto", True][1] <= counts["auto", False][1] and counts["auto", True][2] < elements[0] / 50
 
 
-def test_a_split_emitter_draws_the_penumbra_a_centroid_shot_cannot():
-    # A 0.4 m square emitter 1 m above a floor strip, a 0.3 m blocker half way: the floor's
-    # radiosity against Lambert's closed form for the part of the emitter each point sees
-    # (the emitter less the blocker's projection from the point). One hemicube at the
-    # emitter's centroid draws a hard shadow; shooting from the parts eq. 7 asks for follows
-    # the penumbra, down to the emitter's own elements (2.5 cm: the staircase of their
-    # centroids is what is left).
+def penumbra_setup(emitter_size):
+    """A 0.4 m square emitter 1 m above a floor strip, a 0.3 m blocker half way, the emitter
+    meshed at ``emitter_size``: the mesh, rho, E, the floor's elements, their radiosity by
+    Lambert's closed form for the part of the emitter each centroid sees (the emitter less
+    the blocker's projection from it), and the penumbra's elements."""
     from hemirad.geometry.analytic import point_to_polygon
 
     emitter = quad([-0.2, 1.0, -0.2], [0.4, 0, 0], [0, 0, 0.4])  # faces down
     blocker = quad([-0.15, 0.5, -0.15], [0, 0, 0.3], [0.3, 0, 0])  # faces up
     floor = quad([-0.8, 0.0, -0.02], [0, 0, 0.04], [1.6, 0, 0])  # faces up
-    mesh = quads_mesh([emitter, blocker, floor], [0.025, 0.3, 0.04])
+    mesh = quads_mesh([emitter, blocker, floor], [emitter_size, 0.3, 0.04])
     T = mesh.num_elements
     rho = torch.zeros(T, 3, dtype=torch.float64)
     rho[mesh.surface == 2] = 0.5
@@ -226,6 +226,15 @@ def test_a_split_emitter_draws_the_penumbra_a_centroid_shot_cannot():
     lit = expected > 0.1 * expected.max()
     penumbra = lit & (expected < 0.98 * expected.max())
     assert int(penumbra.sum()) > 40
+    return mesh, rho, E, on_floor, expected, penumbra
+
+
+def test_a_split_emitter_draws_the_penumbra_a_centroid_shot_cannot():
+    # One hemicube at the emitter's centroid draws a hard shadow; shooting from the parts
+    # eq. 7 asks for follows the penumbra, down to the emitter's own elements (2.5 cm: the
+    # staircase of their centroids is what is left).
+    mesh, rho, E, on_floor, expected, penumbra = penumbra_setup(0.025)
+    T = mesh.num_elements
     errors = {}
     for split in (None, point_source_test(0.5)):
         tree = build_patches(mesh, np.full(T, 1.0))  # the emitter is one patch
@@ -241,6 +250,43 @@ def test_a_split_emitter_draws_the_penumbra_a_centroid_shot_cannot():
     # measured: 1.00 and 0.017 (0.050 with the hemicubes' pixel rows along the blocker's
     # edges, which then err by the same fraction of a pixel all along them)
     assert errors[False] > 0.15 and errors[True] < 0.03, errors
+
+
+def test_emitter_eyes_draw_the_penumbra_its_elements_centroids_cannot():
+    # The geometry above with the emitter as 32 triangles of 0.1 m, each shooting alone from
+    # its centroid: a staircase of 32 point sources. With eyes, each shoots from the
+    # centroids of 4**level equal parts of itself: level L is the emitter meshed 2**L times
+    # finer, without its elements.
+    mesh, rho, E, on_floor, expected, penumbra = penumbra_setup(0.1)
+    errors, renders = [], []
+    for level in (0, 1, 2):
+        shooters = PatchShooters(build_patches(mesh, np.zeros(mesh.num_elements)), torch.device("cpu"), eye_level=level)
+        solver = ProgressiveSolver(mesh, rho, E, 256, patches=shooters, overshoot=False, near_reach=0.0,
+                                   small_receivers="closed_form")
+        try:
+            solver.run(32, 0.0)  # each emitting element's shot
+        finally:
+            solver.close()
+        errors.append(float((solver.state.radiosity[on_floor, 0] / expected - 1)[penumbra].abs().max()))
+        renders.append(solver.renderer.renders)
+    # measured: 0.247, 0.097, 0.017
+    assert errors[0] > 0.15 and errors[1] < 0.6 * errors[0] and errors[2] < 0.03, errors
+    assert renders == [32, 128, 512]
+
+
+def test_eye_points_share_a_triangle_equally_and_begin_at_its_centroid():
+    corners = torch.tensor([[[0.0, 0, 0], [2, 0, 0], [0, 1, 0]], [[1, 1, 1], [1, 2, 1], [1, 1, 3]]],
+                           dtype=torch.float64)
+    for level in range(3):
+        eyes = eye_points(corners, level).reshape(2, 4 ** level, 3)
+        torch.testing.assert_close(eyes[:, 0], corners.mean(1))
+        torch.testing.assert_close(eyes.mean(1), corners.mean(1))  # equal parts: their mean is the centroid
+        # every eye inside its triangle
+        a, b, c = corners.unbind(1)
+        u = eyes - a[:, None]
+        M = torch.stack([b - a, c - a], 2)  # (2, 3, 2)
+        w = torch.linalg.lstsq(M[:, None].expand(-1, 4 ** level, -1, -1), u[..., None]).solution[..., 0]
+        assert bool(((w > 0) & (w.sum(-1, keepdim=True) < 1)).all())
 
 
 def test_a_patch_under_a_cover_splits_where_it_leaves_it_and_stops_where_it_does_not():

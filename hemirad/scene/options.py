@@ -9,12 +9,14 @@ from hemirad.scene.keys import Checker
 from hemirad.scene.model import (CRITERION_NAMES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES, Camera, MeshingOptions, RefineOptions,
                                  SolverOptions)
 
+#: The most ``solver.emitter_eyes`` levels: 256 hemicubes per emitting element.
+MAX_EYE_LEVEL = 4
 #: Refuse scenes whose estimated initial triangle count exceeds this.
 MAX_TRIANGLES = 5_000_000
 
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot", "sweeps",
-                "shooter_split", "cache_mb", "small_receivers", "error_samples", "picture_error_samples",
+                "shooter_split", "emitter_eyes", "cache_mb", "small_receivers", "error_samples", "picture_error_samples",
                 "reconstruction")
 _MESHING_KEYS = ("contacts", "intersections")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
@@ -80,6 +82,10 @@ def read_solver(check: Checker, v) -> SolverOptions:
         value = m["shooter_split"]
         opts.shooter_split = None if value in (None, "none") else check.bounded(
             value, "solver.shooter_split", "a number > 0 or none", lambda x: x > 0)
+    if "emitter_eyes" in m and m["emitter_eyes"] != "auto":
+        opts.emitter_eyes = check.integer(m["emitter_eyes"], "solver.emitter_eyes",
+                                          f"auto or a whole number from 0 to {MAX_EYE_LEVEL} (4**n eyes per emitting "
+                                          "element)", 0, MAX_EYE_LEVEL)
     if "cache_mb" in m:
         opts.cache_mb = check.bounded(m["cache_mb"], "solver.cache_mb", "a number of megabytes >= 0",
                                       lambda x: 0 <= x <= 1e7)

@@ -85,6 +85,18 @@ def hidden_centroid_test(share: float = HIDDEN_SHARE) -> ShooterTest:
     return test
 
 
+def eye_points(corners: torch.Tensor, level: int) -> torch.Tensor:
+    """(K * 4**level, 3) the centroids of the triangles that ``level`` midpoint splits make of
+    each of the (K, 3, 3) ``corners``: points that share a triangle's area equally, the first
+    of each triangle's its own centroid (the middle child's middle child is the middle)."""
+    for _ in range(level):
+        a, b, c = corners.unbind(1)
+        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
+        corners = torch.stack([torch.stack(t, 1) for t in ((ab, bc, ca), (a, ab, ca), (ab, b, bc), (ca, bc, c))],
+                              1).reshape(-1, 3, 3)
+    return corners.mean(1)
+
+
 def either(*tests: ShooterTest) -> ShooterTest:
     """A ``ShooterTest`` that splits where any of ``tests`` does (each asked in turn)."""
     def test(view: HemicubeView, corners: torch.Tensor) -> bool:
@@ -114,6 +126,10 @@ class PatchShooters:
             sources 0.00024 in 27 s (the near weights past the sweeps' memory), the initial
             ones 0.00031 in 16 s, their children 0.00025 in 20 s (office, 12,703: 0.00015 /
             0.00016 / 0.00015).
+        eye_level: a node whose elements all emit shoots from the centroids of 4**eye_level
+            equal parts of each (``eye_points``; its row the mean of theirs) instead of its
+            centroid: a lamp's penumbrae are then those of a lamp meshed 2**eye_level times
+            finer, without its elements.
     Attributes:
         leaf, patch, source: (T,) int64 each element's leaf position, patch and source
             (children inherit their parent's).
@@ -128,8 +144,9 @@ class PatchShooters:
 
     def __init__(self, tree: PatchTree, device: torch.device, split_test: ShooterTest | None = None,
                  source: torch.Tensor | None = None, source_corners: torch.Tensor | None = None,
-                 source_split: str | None = None):
+                 source_split: str | None = None, eye_level: int = 0):
         self.tree = tree
+        self.eye_level = eye_level
         self.split_test = split_test
         self._leaf = GrowingRows(tree.leaf.to(device))
         self._patch = GrowingRows(tree.patch.to(device))

@@ -26,7 +26,7 @@ from hemirad.transport.nearfield import (NearReceivers, NearShooter, incident_po
                                         run_to_end)
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
-from hemirad.transport.shooters import PatchShooters
+from hemirad.transport.shooters import PatchShooters, eye_points
 from hemirad.transport.smallreceivers import small_receiver_form_factors
 from hemirad.transport.sweep import SweepTransport
 from hemirad.transport.view import HemicubeView
@@ -38,12 +38,13 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
-#: 13: no round for a sliver of the budget; 12: contour integrals cut at the receiver
+#: 14: emitters shoot from eyes where refinement is judged on the answer; 13: no round for a
+#: sliver of the budget; 12: contour integrals cut at the receiver
 #: edges' feet, near totals by area with contacts meshed; 11: a covered node shoots whole,
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 13
+ARITHMETIC = 14
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
@@ -459,11 +460,44 @@ class ProgressiveSolver:
         """(T,) F_sj from ``shooter`` on the current mesh: its kept row, else rendered (and kept)."""
         F = self.rows.get(shooter, self.mesh.num_elements)
         if F is None:
-            view = self.render(shooter)
-            self._keep_view(shooter, view)
-            F = self.shot_row(view)
-            self.rows.put(shooter, F)
+            view = self._views.get(shooter)
+            F = self._row(shooter, self.render(shooter) if view is None else view)
         return F
+
+    def _row(self, shooter: int, view: HemicubeView) -> torch.Tensor:
+        """(T,) the row ``shooter`` shoots with, given its ``view``, kept with the view: the
+        view's ``shot_row``, or for a node of emitting elements with eyes (``_eyes``), the
+        mean of those of its eyes (``shooters.eye_points``; the first of a one-element
+        node's is its centroid, the view's own)."""
+        self._keep_view(shooter, view)
+        F = self.shot_row(view)
+        eyes = self._eyes(shooter)
+        if eyes is not None:
+            points, weights = eyes[0].cpu().numpy(), eyes[1].tolist()
+            _, normal, tangent = self._placement(shooter)
+            # a one-element node's first eye is its centroid: the view's own
+            first = 1 if len(self.patches.members(shooter)) == 1 else 0
+            F = F * weights[0] if first else torch.zeros_like(F)
+            for i in range(first, len(points)):
+                if i + 1 < len(points):  # drawn while this one is used
+                    self.renderer.prefetch_at(points[i + 1], normal, tangent)
+                F += weights[i] * self.shot_row(self.renderer.render_at(points[i], normal, tangent))
+        self.rows.put(shooter, F)
+        return F
+
+    def _eyes(self, shooter: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Where a node whose elements all emit shoots from, with the patches' ``eye_level``:
+        (E, 3) the eyes of its elements (``shooters.eye_points``) and (E,) their shares of its
+        area; None for any other node (it shoots from its centroid)."""
+        if self.patches is None or self.patches.eye_level == 0:
+            return None
+        members = self.patches.members(shooter)
+        if not bool((self.emission.index_select(0, members) > 0).any(1).all()):
+            return None
+        per_element = 4 ** self.patches.eye_level
+        areas = self.areas.index_select(0, members)
+        weights = (areas / (areas.sum() * per_element)).repeat_interleave(per_element)
+        return eye_points(self.mesh.corners_of(members), self.patches.eye_level), weights
 
     def shot_row(self, view: HemicubeView, among: torch.Tensor | None = None) -> torch.Tensor:
         """(T,) the F_sj a shot from ``view`` (of the current mesh) hands out: its pixel sums, or
@@ -476,10 +510,13 @@ class ProgressiveSolver:
             return small_receiver_form_factors(view, self.mesh.corners, self.mesh.areas, among=among)
 
     def render_and_keep(self, shooter: int) -> HemicubeView:
-        """``render(shooter)``, its ``shot_row`` kept for the shooter's shots."""
+        """``render(shooter)``, kept with its row for the shooter's shots (a row from eyes is
+        made when the shooter shoots: the view may split it)."""
         view = self.render(shooter)
-        self._keep_view(shooter, view)
-        self.rows.put(shooter, self.shot_row(view))
+        if self._eyes(shooter) is None:
+            self._row(shooter, view)
+        else:
+            self._keep_view(shooter, view)
         return view
 
     def _keep_view(self, shooter: int, view: HemicubeView) -> None:
