@@ -370,7 +370,7 @@ def write_converged_table(path: Path, rows: list[dict]) -> None:
              "`uniform x f`: the shipped element sizes times f, no refinement; `answer from x f`: that mesh, "
              "then rounds of `refine.criterion: answer` (pattern 2, each round at most doubling the elements, "
              "its mesh then solved afresh with the initial mesh's patches, each holding its elements' children, "
-             "emitters shooting element by element), "
+             "emitters shooting element by element, each from the centroids of four equal parts of itself: `solver.emitter_eyes`), "
              "a row after each round with the seconds from the start; `answer to a third of the finest's elements`: "
              f"from x{GOAL_STARTS[0]:g} and from the shipped mesh, rounds until a third of the finest uniform mesh's elements, "
              "grown by equal ratios (the goal: that mesh's relMSE with a third of its elements in half its seconds; "

@@ -134,14 +134,16 @@ def test_split_receivers_get_the_light_a_fresh_solve_gives_them_and_keep_their_p
 
 
 def test_power_balances_to_1e9_through_rounds_of_late_splits():
-    # a closed box of random reflectances, one glowing face, two rounds of splits after
-    # converging: received + unshot + escaped = emitted, and nothing escapes a closed box
+    # a closed box of random reflectances, one glowing face shooting from eyes, two rounds of
+    # splits after converging: received + unshot + escaped = emitted, and nothing escapes a
+    # closed box
     mesh = closed_box(element_size=0.25)
     T = mesh.num_elements
     rho, E = random_materials(T, seed=2, span=0.6, low=0.2, glowing=32)
     tree = build_patches(mesh, np.full(T, 0.5))
-    solver = ProgressiveSolver(mesh, rho, E, 32, patches=PatchShooters(tree, torch.device("cpu")), overshoot=True,
-                               near_reach=3.0)
+    solver = ProgressiveSolver(mesh, rho, E, 32, patches=PatchShooters(tree, torch.device("cpu"), eye_level=1),
+                               overshoot=True, near_reach=3.0)
+    assert solver._eyes(int(tree.root[int(solver.patches.patch[0])])) is not None
     refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
     try:
         rounds = refine_by_answer(solver, refiner, 4 * T, 0.0, 2, lambda: solver.run(10_000, 1e-3),

@@ -137,7 +137,7 @@ def regather(solver: "ProgressiveSolver", parent: torch.Tensor, split: torch.Ten
         # place of the row's own (``small_receiver_form_factors``), and later shots render
         # the few rows they need in full
         view = solver.render(node)
-        F = solver.shot_row(view, among=is_changed)
+        F = solver.node_row(node, view, among=is_changed)
         part = F.index_select(0, changed)[:, None] * patches.sent[node]  # (C, 3)
         near = solver.near_receivers_of(node, F, among=changed, view=view)
         if near is not None and len(near.rows):

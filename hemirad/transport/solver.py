@@ -454,7 +454,7 @@ class ProgressiveSolver:
             return self.form_factors_of(shooter)
         view = refiner.shoot(self, shooter, shot_power)
         self._keep_view(shooter, view)
-        return self.shot_row(view)
+        return self.node_row(shooter, view)
 
     def form_factors_of(self, shooter: int) -> torch.Tensor:
         """(T,) F_sj from ``shooter`` on the current mesh: its kept row, else rendered (and kept)."""
@@ -465,24 +465,29 @@ class ProgressiveSolver:
         return F
 
     def _row(self, shooter: int, view: HemicubeView) -> torch.Tensor:
-        """(T,) the row ``shooter`` shoots with, given its ``view``, kept with the view: the
-        view's ``shot_row``, or for a node of emitting elements with eyes (``_eyes``), the
-        mean of those of its eyes (``shooters.eye_points``; the first of a one-element
-        node's is its centroid, the view's own)."""
+        """(T,) the row ``shooter`` shoots with (``node_row``) given its ``view``, kept with the view."""
         self._keep_view(shooter, view)
-        F = self.shot_row(view)
-        eyes = self._eyes(shooter)
-        if eyes is not None:
-            points, weights = eyes[0].cpu().numpy(), eyes[1].tolist()
-            _, normal, tangent = self._placement(shooter)
-            # a one-element node's first eye is its centroid: the view's own
-            first = 1 if len(self.patches.members(shooter)) == 1 else 0
-            F = F * weights[0] if first else torch.zeros_like(F)
-            for i in range(first, len(points)):
-                if i + 1 < len(points):  # drawn while this one is used
-                    self.renderer.prefetch_at(points[i + 1], normal, tangent)
-                F += weights[i] * self.shot_row(self.renderer.render_at(points[i], normal, tangent))
+        F = self.node_row(shooter, view)
         self.rows.put(shooter, F)
+        return F
+
+    def node_row(self, shooter: int, view: HemicubeView, among: torch.Tensor | None = None) -> torch.Tensor:
+        """(T,) the row ``shooter`` (its hemicube's ``view``) shoots with: the view's
+        ``shot_row``, or for a node of emitting elements with eyes (``_eyes``), the mean of
+        those of its eyes (the first of a one-element node's is its centroid, the view's own).
+        ``among``: as ``shot_row``'s."""
+        F = self.shot_row(view, among)
+        eyes = self._eyes(shooter)
+        if eyes is None:
+            return F
+        points, weights = eyes[0].cpu().numpy(), eyes[1].tolist()
+        _, normal, tangent = self._placement(shooter)
+        first = 1 if len(self.patches.members(shooter)) == 1 else 0
+        F = F * weights[0] if first else torch.zeros_like(F)
+        for i in range(first, len(points)):
+            if i + 1 < len(points):  # drawn while this one is used
+                self.renderer.prefetch_at(points[i + 1], normal, tangent)
+            F += weights[i] * self.shot_row(self.renderer.render_at(points[i], normal, tangent), among)
         return F
 
     def _eyes(self, shooter: int) -> tuple[torch.Tensor, torch.Tensor] | None:
