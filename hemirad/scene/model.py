@@ -331,8 +331,9 @@ class Scene:
         against the references, converged): the answer's runs to a third of the finest
         uniform mesh's elements, from x2 / x1, floating 0.00010 / 0.00023 -> 0.00009 /
         0.00022, Cornell box 0.00030 / 0.00026 -> 0.00028 / 0.00022, office 0.00014 / 0.00033
-        -> 0.00013 / 0.00028, for 3-17% more seconds (eyes on the refined meshes' solves only
-        kept the x1 runs' error as it was, for about the same seconds); floating's penumbra
+        -> 0.00013 / 0.00028, in 7-25% more seconds (the study's goal rows: three more
+        hemicubes a solve per lamp element; eyes on the refined meshes' solves only kept the
+        x1 runs' error as it was, for about the same seconds); floating's penumbra
         band after three rounds from x1 from 3.9% largest, 99.0% within 3% to 2.1%, all
         within 3%. The shipped uniform meshes gain nothing (floating 0.00165 -> 0.00162,
         Cornell box 0.00117 -> 0.00123, office 0.00072 -> 0.00074; floating x0.5 0.00053 for
