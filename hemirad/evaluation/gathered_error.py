@@ -44,6 +44,12 @@ HIDDEN_BACK_SHARE = 0.5
 #: Samples per estimate by default: 1,000 give the estimate to about 10% (its standard
 #: error, reported with it) in 2-5 s on a 2-core machine for 3,000-10,000 elements.
 DEFAULT_SAMPLES = 1000
+#: A pixel's point is gathered at least this barycentric share inside its element. A pixel
+#: centre on a room's corner line lies, to rounding, on the other wall's plane, and a gather
+#: there sees a third of its hemisphere outside the room: three such points on floating's
+#: corner made 91% of the picture's estimate after three rounds from x2 (0.41 gathered
+#: against 0.65 shown and path-traced), which read 2.7 times the measured error.
+EDGE_INSET = 1e-2
 
 
 @dataclass(frozen=True)
@@ -161,10 +167,18 @@ def image_gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Te
     u = _stratified(samples, torch.Generator().manual_seed(seed))
     pick = valid[(u * len(valid)).long().clamp(max=len(valid) - 1)]
     element, points = element[pick], points[pick]
-    # clamped into the triangle: a pixel centre on an edge may round outside
-    coordinates = barycentric(mesh.corners.index_select(0, element), points).clamp(min=0)
-    coordinates = coordinates / coordinates.sum(1, keepdim=True)
+    corners = mesh.corners.index_select(0, element)
+    coordinates = inset_coordinates(barycentric(corners, points))
+    points = (corners * coordinates[:, :, None]).sum(1)
     return _compare(mesh, radiosity, emission, reflectance, element, coordinates, points, resolution, reconstruction)
+
+
+def inset_coordinates(coordinates: torch.Tensor, inset: float = EDGE_INSET) -> torch.Tensor:
+    """(N, 3) barycentric ``coordinates`` moved into their triangle: each at least ``inset``
+    (a pixel centre on an edge may round outside it; ``EDGE_INSET``)."""
+    coordinates = coordinates.clamp(min=0)
+    coordinates = coordinates / coordinates.sum(1, keepdim=True)
+    return inset + (1 - 3 * inset) * coordinates
 
 
 def _compare(mesh: Mesh, radiosity, emission: torch.Tensor, reflectance, element: torch.Tensor,
