@@ -55,9 +55,9 @@ def under_cover(view: HemicubeView, points: torch.Tensor, corners: torch.Tensor)
     inside it, seen along the view's axis. ``corners`` (T, 3, 3): the elements the view is of.
     Such points are covered (a lamp hung just below a ceiling): what leaves them goes into
     the cover's back wherever it leaves from."""
-    seen_back = _seen_back(view)
-    if float(view.weight[seen_back].sum()) < 1.0 - HIDDEN_SHARE:
+    if back_face_share(view) < 1.0 - HIDDEN_SHARE:
         return False
+    seen_back = _seen_back(view)
     cover = torch.unique(view.element[seen_back])
     axes = view.frame[:2]  # (2, 3): the plane's t and b
     a, b, c = ((corners.index_select(0, cover)[:, k] - view.eye) @ axes.T for k in range(3))  # (C, 2) each
