@@ -9,8 +9,9 @@ planar patch of a mesh file), ``geometry.footprints`` finds from the geometry al
 touches it: faces lying in its plane facing it or hovering a hair in front of it (a lamp
 hung just under a ceiling), and faces standing on it. The touched surface is then
 triangulated afresh (``geometry.conforming``) with the footprints' outlines and the contact
-lines as element edges and the covered part left out: nothing can see or light it. Surfaces nothing touches (or touches only along their outline, as walls meet a
-floor) keep their meshes exactly.
+lines as element edges and the covered part left out: nothing can see or light it.
+Surfaces nothing touches (or touches only along their outline, as walls meet a floor) keep
+their meshes exactly.
 
 Contacts are found on the surfaces as first meshed, so the result does not depend on the
 order of the objects.
