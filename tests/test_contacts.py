@@ -250,11 +250,15 @@ def test_an_untouched_surface_is_meshed_as_before():
     assert changed == ["room.ceiling"]
 
 
-def hung_lamp_scene(gap: float, contacts: bool = True) -> Scene:
-    """A 4 x 2.5 x 3 room of 0.5 elements with a 1.1 x 0.9 lamp ``gap`` under its ceiling,
-    its outline across the ceiling's grid."""
+HUNG_LAMP = [(1.45, 1.05), (2.55, 1.05), (2.55, 1.95), (1.45, 1.95)]
+SMALL_TILE = [(1.97, 1.47), (2.03, 1.47), (2.03, 1.53), (1.97, 1.53)]
+
+
+def hung_lamp_scene(gap: float, contacts: bool = True, outline=HUNG_LAMP) -> Scene:
+    """A 4 x 2.5 x 3 room of 0.5 elements with a lamp of ``outline`` (x, z) ``gap`` under its
+    ceiling (by default 1.1 x 0.9, its outline across the ceiling's grid)."""
     y = 2.5 - gap
-    corners = ((1.45, y, 1.05), (2.55, y, 1.05), (2.55, y, 1.95), (1.45, y, 1.95))
+    corners = tuple((x, y, z) for x, z in outline)
     materials = [Material("wall", (0.7, 0.7, 0.7)), Material("lamp", (0.0, 0.0, 0.0), (30.0, 30.0, 30.0))]
     objects = [Room((0.0, 0.0, 0.0), (4.0, 2.5, 3.0), "wall", 0.5, name="room"),
                Quad(corners, "lamp", 0.3, name="lamp")]
@@ -264,14 +268,13 @@ def hung_lamp_scene(gap: float, contacts: bool = True) -> Scene:
     return scene
 
 
-HUNG_LAMP = [(1.45, 1.05), (2.55, 1.05), (2.55, 1.95), (1.45, 1.95)]
-
-
-@pytest.mark.parametrize("gap, covers", [(0.005, True), (0.02, False)], ids=["5mm", "2cm"])
-def test_a_lamp_hung_a_hair_under_the_ceiling_covers_it(gap, covers):
+@pytest.mark.parametrize("gap, outline, covers", [(0.005, HUNG_LAMP, True), (0.02, HUNG_LAMP, False),
+                                                  (0.005, SMALL_TILE, False)], ids=["5mm", "2cm", "small"])
+def test_a_lamp_hung_a_hair_under_the_ceiling_covers_it(gap, outline, covers):
     """Within 2e-3 of the scene's size (8 mm here) a face parallel to a surface covers it,
-    whichever way it faces; further off, the surface keeps its grid."""
-    mesh = build_mesh(hung_lamp_scene(gap))
+    whichever way it faces, if it is ten times wider (twice its area over its perimeter: 0.5
+    m for the lamp, 3 cm for a 6 cm tile) than its gap; else the surface keeps its grid."""
+    mesh = build_mesh(hung_lamp_scene(gap, outline=outline))
     ceiling = surface_triangles(mesh, "room.ceiling")
     if covers:
         assert outside_convex(ceiling, HUNG_LAMP, 1e-9).all()
@@ -279,8 +282,8 @@ def test_a_lamp_hung_a_hair_under_the_ceiling_covers_it(gap, covers):
         a = angles(ceiling)
         assert a.min() > MIN_ANGLE and a.max() < MAX_ANGLE, (a.min(), a.max())
     else:
-        assert_same_mesh(mesh, build_mesh(hung_lamp_scene(gap, contacts=False)))
-    assert surface_area(mesh, "lamp") == pytest.approx(1.1 * 0.9, rel=1e-9)  # the ceiling is behind it
+        assert_same_mesh(mesh, build_mesh(hung_lamp_scene(gap, contacts=False, outline=outline)))
+    assert surface_area(mesh, "lamp") == pytest.approx(shoelace(outline), rel=1e-9)  # the ceiling is behind it
 
 
 def test_no_dark_halo_on_the_ceiling_beside_a_hung_lamp():

@@ -10,7 +10,8 @@ meshing, Heckbert 1992; Lischinski, Tampieri & Greenberg 1992):
   under it only through a slit, a band of about the gap's width inside its outline, and a
   ceiling element there, dark, would pull the lit ceiling beside the lamp down in every
   reconstruction that spans the outline (measured in a room with 0.5 m ceiling elements:
-  22-51% dark 2-25 cm outside a lamp hung 5 mm under it);
+  22-51% dark 2-25 cm outside a lamp hung 5 mm under it). Only a cover much wider than its
+  gap (``HOVER_ASPECT``) counts;
 * a triangle meeting the plane along an edge and rising on the plane's front (a block's
   side standing on the floor) marks a *contact line*. Where contact lines close a polygon
   and every edge of it has a face standing on it whose normal points out of the polygon
@@ -34,6 +35,10 @@ from hemirad.geometry.patches import plane_axes
 
 #: A triangle faces the plane when its normal is within 60 degrees of the plane's reversed normal.
 FACING_COSINE = 0.5
+#: A hovering cover counts only where it is at least this many times wider (twice its area
+#: over its perimeter) than its gap: under it the slit is then dark but for a rim about the
+#: gap wide. A 10 cm tile 7 mm off a ceiling lets light under it; a 1 m lamp 5 mm off does not.
+HOVER_ASPECT = 10.0
 
 
 @dataclass(frozen=True)
@@ -130,10 +135,12 @@ def contacts(frame: PlaneFrame, corners: np.ndarray, normals: np.ndarray, tolera
     facing = normals @ frame.normal < -FACING_COSINE
     parallel = np.abs(normals @ frame.normal) > FACING_COSINE
     hovering = (heights.min(axis=1) > tolerance) & (heights.max(axis=1) <= gap) & parallel
-    lying = (on.all(axis=1) & facing) | hovering
+    lying = on.all(axis=1) & facing
     standing = (on.sum(axis=1) == 2) & (heights.max(axis=1) > tolerance)
 
     covered = [_union_of_triangles(frame.to_plane(corners[lying]), tolerance)] if lying.any() else []
+    if hovering.any():
+        covered += _hovering_covers(frame.to_plane(corners[hovering]), heights[hovering].max(axis=1), tolerance)
     rows = np.flatnonzero(standing)
     # each standing triangle's two corners on the plane, in their cyclic order
     off = np.argmin(on[rows], axis=1)  # the corner above the plane
@@ -146,6 +153,20 @@ def contacts(frame: PlaneFrame, corners: np.ndarray, normals: np.ndarray, tolera
         covered += _footprints(segments, outward, tolerance)
     area = shapely.unary_union(covered) if covered else Polygon()
     return Contacts(shapely.simplify(area, tolerance, preserve_topology=True), segments, outward)
+
+
+def _hovering_covers(corners: np.ndarray, heights: np.ndarray, tolerance: float) -> list[BaseGeometry]:
+    """The parts of the union of the hovering triangles (K, 3, 2) ``corners``, each at most
+    ``heights`` (K,) off the plane, that are ``HOVER_ASPECT`` times wider than their gap."""
+    union = _union_of_triangles(corners, tolerance)
+    centroids = corners.mean(axis=1)
+    kept = []
+    for part in shapely.get_parts(union):
+        inside = shapely.contains_xy(part, centroids[:, 0], centroids[:, 1])
+        gap = heights[inside].max() if inside.any() else heights.max()
+        if 2.0 * part.area >= HOVER_ASPECT * gap * part.length:
+            kept.append(part)
+    return kept
 
 
 def _footprints(segments: np.ndarray, outward: np.ndarray, tolerance: float) -> list[BaseGeometry]:
