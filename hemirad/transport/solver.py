@@ -38,13 +38,14 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 15: a face hovering a hair in front of a surface covers it where contacts are meshed;
 #: 14: emitters shoot from eyes where refinement is judged on the answer; 13: no round for a
 #: sliver of the budget; 12: contour integrals cut at the receiver
 #: edges' feet, near totals by area with contacts meshed; 11: a covered node shoots whole,
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 14
+ARITHMETIC = 15
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
