@@ -477,14 +477,15 @@ class ProgressiveSolver:
         ``shot_row``, or for a node of emitting elements with eyes (``_eyes``), the mean of
         those of its eyes (the first of a one-element node's is its centroid, the view's own).
         ``among``: as ``shot_row``'s."""
-        F = self.shot_row(view, among)
         eyes = self._eyes(shooter)
         if eyes is None:
-            return F
+            return self.shot_row(view, among)
         points, weights = eyes[0].cpu().numpy(), eyes[1].tolist()
         _, normal, tangent = self._placement(shooter)
+        # a one-element node's first eye is its centroid: the view's own row; a larger node's
+        # centroid is none of its eyes, and its view only served the shooter test
         first = 1 if len(self.patches.members(shooter)) == 1 else 0
-        F = F * weights[0] if first else torch.zeros_like(F)
+        F = self.shot_row(view, among) * weights[0] if first else torch.zeros_like(view.form_factors)
         for i in range(first, len(points)):
             if i + 1 < len(points):  # drawn while this one is used
                 self.renderer.prefetch_at(points[i + 1], normal, tangent)
