@@ -12,7 +12,7 @@ from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patches import build_patches, element_sides, group_patches, hole_rims
 from hemirad.lighting.photometry import emission_table
 from hemirad.scene.meshing import build_mesh, surface_objects
-from hemirad.scene.model import MeshFile, Scene
+from hemirad.scene.model import MeshFile, Scene, resolved_small_receivers
 from hemirad.transport.shooters import PatchShooters, ShooterTest, either, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver
 
@@ -82,7 +82,7 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
                              overshoot=options.overshoot, sweeps=options.sweeps, near_reach=NEAR_REACH if patches is not None else 0.0,
                              near_totals=near_totals(scene),
                              refine_shots=scene.refine.shots if refiner is not None else None, device=device,
-                             small_receivers=scene.refine.resolved_small_receivers(options.small_receivers))
+                             small_receivers=resolved_small_receivers(options.small_receivers))
 
 
 def make_patches(scene: Scene, mesh: Mesh, device: torch.device) -> PatchShooters:

@@ -8,6 +8,7 @@ import yaml
 
 import hemirad
 from hemirad.core.errors import SceneError
+from hemirad.scene.model import resolved_small_receivers
 from hemirad.geometry.analytic import point_to_polygon, point_to_triangles
 from hemirad.geometry.mesh import Mesh
 from hemirad.transport.formfactor import delta_form_factors, hemicube_directions
@@ -263,24 +264,30 @@ def test_kept_rows_are_the_corrected_ones():
     E = torch.zeros(T, 3, dtype=torch.float64)
     E[0] = 1.0
     solver = closed_box_solver(mesh, rho, E)
+    reflector = T // 2  # emits nothing
     try:
         view = solver.render_and_keep(0)  # as a patch's shooter test renders it
         kept = solver.form_factors_of(0)
         renders = solver.renderer.renders
+        reflector_view = solver.render_and_keep(reflector)
+        reflector_kept = solver.form_factors_of(reflector)
     finally:
         solver.close()
     assert renders == 1  # the row came from the cache
     assert torch.equal(kept, small_receiver_form_factors(view, mesh.corners, mesh.areas))
     assert not torch.equal(kept, view.form_factors)  # the view keeps its pixel sums
+    # a shooter that only reflects shoots its pixel sums: its receivers' luck averages out
+    # over the many reflecting shooters, where the few lamps' does not
+    assert torch.equal(reflector_kept, reflector_view.form_factors)
+    corrected = small_receiver_form_factors(reflector_view, mesh.corners, mesh.areas)
+    assert not torch.equal(reflector_kept, corrected)  # it has small receivers to correct
 
 
 def test_the_option_is_read_checked_and_the_paper_keeps_pixels(tmp_path):
     scene = hemirad.load_scene("floating_coarse")
     assert scene.solver.small_receivers == "auto"
-    assert scene.refine.resolved_small_receivers("auto") == "pixels"  # no refinement: no small receivers
-    scene.refine.pattern = "pattern2"
-    assert scene.refine.resolved_small_receivers("auto") == "closed_form"
-    assert scene.refine.resolved_small_receivers("pixels") == "pixels"
+    assert resolved_small_receivers("auto") == "closed_form"  # the lamps' shots, refined or not
+    assert resolved_small_receivers("pixels") == "pixels"
     scene.solver.paper()
     assert scene.solver.small_receivers == "pixels"
     doc = {"element_size": 0.5,
