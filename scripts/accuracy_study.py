@@ -291,7 +291,6 @@ def _uniform_run(name, shipped, comparison, factor: float) -> dict:
     """The shipped mesh's elements times ``factor``, no refinement, converged and scored."""
     scene = shipped.with_element_sizes_scaled(factor)
     scene.solver.unshot_fraction = CONVERGED_UNSHOT
-    scene.solver.small_receivers = "closed_form"  # as the answer's runs (auto: closed_form when refining)
     start = time.perf_counter()
     solver = make_solver(scene)
     try:

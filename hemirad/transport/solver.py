@@ -495,8 +495,9 @@ class ProgressiveSolver:
 
     def _emits(self, shooter: int) -> bool:
         """Whether any element of ``shooter`` (a node; without patches, an element) emits."""
-        members = self.patches.members(shooter) if self.patches is not None else torch.tensor([shooter])
-        return bool((self.emission.index_select(0, members.to(self.device)) > 0).any())
+        if self.patches is None:
+            return bool((self.emission[shooter] > 0).any())
+        return bool((self.emission.index_select(0, self.patches.members(shooter)) > 0).any())
 
     def _eyes(self, shooter: int) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Where a node whose elements all emit shoots from, with the patches' ``eye_level``:
