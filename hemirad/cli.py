@@ -121,9 +121,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="also read the irradiance and illuminance at the sensors of FILE, a CSV of lines "
                              "x,y,z,nx,ny,nz[,name] (a header line and # comments allowed); writes OUT/sensors.csv")
     parser.add_argument("--small-receivers", choices=SMALL_RECEIVER_CHOICES,
-                        help="form factors of receivers that cover few hemicube pixels in the lamps' shots: "
-                             "closed_form (auto, the default), Lambert's closed form times the visibility the "
-                             "hemicube finds; pixels, their pixels' sum as in the paper (solver.small_receivers)")
+                        help="form factors of receivers that cover few hemicube pixels: lamps, Lambert's closed "
+                             "form times the visibility the hemicube finds in the lamps' shots; closed_form, that "
+                             "and in every shot for receivers under a pixel; pixels, their pixels' sum as in the "
+                             "paper; auto (the default), closed_form when refining, else lamps "
+                             "(solver.small_receivers)")
     parser.add_argument("--reconstruction", choices=RECONSTRUCTION_CHOICES,
                         help="how element values reach the vertices that shading and exports interpolate: "
                              "quadratic (the default), a quadratic fitted around each vertex; mean, the "

@@ -13,7 +13,7 @@ from hemirad.geometry.analytic import point_to_polygon, point_to_triangles
 from hemirad.geometry.mesh import Mesh
 from hemirad.transport.formfactor import delta_form_factors, hemicube_directions
 from hemirad.transport.renderer import HemicubeRenderer
-from hemirad.transport.smallreceivers import (MAX_PIXELS, atlas_pixels, footprint_pixels, sample_barycentrics,
+from hemirad.transport.smallreceivers import (BOUNCE_MAX_PIXELS, MAX_PIXELS, atlas_pixels, footprint_pixels, sample_barycentrics,
                                               small_receiver_form_factors)
 from hemirad.transport.solver import ProgressiveSolver
 
@@ -276,18 +276,27 @@ def test_kept_rows_are_the_corrected_ones():
     assert renders == 1  # the row came from the cache
     assert torch.equal(kept, small_receiver_form_factors(view, mesh.corners, mesh.areas))
     assert not torch.equal(kept, view.form_factors)  # the view keeps its pixel sums
-    # a shooter that only reflects shoots its pixel sums: its receivers' luck averages out
-    # over the many reflecting shooters, where the few lamps' does not
-    assert torch.equal(reflector_kept, reflector_view.form_factors)
+    # a shooter that only reflects corrects only its receivers under a pixel: the others'
+    # luck averages out over the many reflecting shooters, where the few lamps' does not
+    assert torch.equal(reflector_kept, small_receiver_form_factors(reflector_view, mesh.corners, mesh.areas,
+                                                                   BOUNCE_MAX_PIXELS))
     corrected = small_receiver_form_factors(reflector_view, mesh.corners, mesh.areas)
-    assert not torch.equal(reflector_kept, corrected)  # it has small receivers to correct
+    assert not torch.equal(reflector_kept, corrected)  # it has receivers of a few pixels to correct
+    # with lamps, a reflecting shooter hands out its pixel sums, a lamp its corrected row
+    lamps = ProgressiveSolver(mesh, rho, E, 32, small_receivers="lamps")
+    try:
+        assert torch.equal(lamps.form_factors_of(0), kept)
+        assert torch.equal(lamps.form_factors_of(reflector), reflector_view.form_factors)
+    finally:
+        lamps.close()
 
 
 def test_the_option_is_read_checked_and_the_paper_keeps_pixels(tmp_path):
     scene = hemirad.load_scene("floating_coarse")
     assert scene.solver.small_receivers == "auto"
-    assert resolved_small_receivers("auto") == "closed_form"  # the lamps' shots, refined or not
-    assert resolved_small_receivers("pixels") == "pixels"
+    assert resolved_small_receivers("auto", refining=False) == "lamps"
+    assert resolved_small_receivers("auto", refining=True) == "closed_form"
+    assert resolved_small_receivers("pixels", refining=True) == "pixels"
     scene.solver.paper()
     assert scene.solver.small_receivers == "pixels"
     doc = {"element_size": 0.5,
@@ -296,7 +305,7 @@ def test_the_option_is_read_checked_and_the_paper_keeps_pixels(tmp_path):
                        {"type": "quad", "material": "lamp",
                         "corners": [[1, 2.49, 1], [2, 2.49, 1], [2, 2.49, 2], [1, 2.49, 2]]}],
            "camera": {"position": [2, 1.5, 0.2], "look_at": [2, 1, 4]}}
-    for value in ("auto", "pixels", "closed_form", "exact"):
+    for value in ("auto", "pixels", "lamps", "closed_form", "exact"):
         path = tmp_path / f"{value}.yaml"
         path.write_text(yaml.safe_dump({**doc, "solver": {"small_receivers": value}}, sort_keys=False))
         if value != "exact":
@@ -305,7 +314,7 @@ def test_the_option_is_read_checked_and_the_paper_keeps_pixels(tmp_path):
         with pytest.raises(SceneError) as error:
             hemirad.load_scene(path)
         message = str(error.value)
-        assert "solver.small_receivers" in message and "auto, pixels, closed_form" in message and path.name in message
+        assert "solver.small_receivers" in message and "auto, pixels, lamps, closed_form" in message and path.name in message
 
 
 def test_the_command_line_option_sets_it_and_refuses_other_values(capsys):

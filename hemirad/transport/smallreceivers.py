@@ -46,6 +46,14 @@ from hemirad.transport.view import HemicubeView
 #: rows, over 7 x 7 offsets within a pixel): a pixel sum's worst error is 106% at half a
 #: pixel, 55% at 2, 38% at 4.5, 29% at 8, 21% at 18 and 64, 10% at 128.
 MAX_PIXELS = 16.0
+#: The same for a shooter that only reflects (``ProgressiveSolver.shot_row``): its receivers'
+#: reflected light comes from hundreds of such shooters, whose pixel luck averages out, except
+#: under a pixel, where a receiver gets nothing or a whole pixel, ten times its share at a
+#: tenth of a pixel. Measured (converged, floating refined by the answer from x2 in three
+#: rounds to 11,000 elements; relMSE): every receiver under 16 pixels corrected 0.00003 in 22 s,
+#: those under one 0.00004 in 16 s, none 0.00014 in 16 s; on the uniform meshes of 10,000-11,000
+#: elements all three give the same error.
+BOUNCE_MAX_PIXELS = 1.0
 #: Visibility samples per receiver: about one a pixel of its footprint, at most SAMPLE_LEVEL^2.
 SAMPLE_LEVEL = 4
 #: A receiver whose sub-triangles are longer than this fraction of its distance from the eye

@@ -27,7 +27,7 @@ from hemirad.transport.nearfield import (NearReceivers, NearShooter, incident_po
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
 from hemirad.transport.shooters import PatchShooters, eye_points
-from hemirad.transport.smallreceivers import small_receiver_form_factors
+from hemirad.transport.smallreceivers import BOUNCE_MAX_PIXELS, MAX_PIXELS, small_receiver_form_factors
 from hemirad.transport.sweep import SweepTransport
 from hemirad.transport.view import HemicubeView
 
@@ -38,7 +38,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
-#: 16: only the emitting shooters correct their small receivers, refined or not;
+#: 16: only the lamps' shots correct receivers of a few pixels (reflecting shooters those
+#: under a pixel, refining), and unrefined runs correct the lamps';
 #: 15: a face hovering a hair in front of a surface covers it where contacts are meshed;
 #: 14: emitters shoot from eyes where refinement is judged on the answer; 13: no round for a
 #: sliver of the budget; 12: contour integrals cut at the receiver
@@ -171,8 +172,8 @@ class ProgressiveSolver:
             on CUDA the hemicubes are drawn by the GPU's OpenGL context. The inputs may be
             anywhere; ``state_dict`` is always on the CPU.
         small_receivers: how receivers that cover few hemicube pixels get their form factors
-            (``scene.model.SMALL_RECEIVER_CHOICES``): pixels, or closed_form (``smallreceivers``),
-            applied to the row a shot uses and keeps (``shot_row``); the views the refiner and
+            (``scene.model.SMALL_RECEIVER_CHOICES``): pixels, lamps or closed_form
+            (``smallreceivers``), applied to the row a shot uses and keeps (``shot_row``); the views the refiner and
             the shooter tests read keep their pixel sums.
     Attributes:
         mesh, reflectance, emission, areas: current, as refinement changes them (on ``device``).
@@ -515,21 +516,25 @@ class ProgressiveSolver:
 
     def shot_row(self, view: HemicubeView, among: torch.Tensor | None = None, emits: bool = True) -> torch.Tensor:
         """(T,) the F_sj a shot from ``view`` (of the current mesh) hands out: its pixel sums, or
-        with ``small_receivers`` closed_form, for a shooter that ``emits``, those of the
-        receivers covering few pixels replaced (``smallreceivers.small_receiver_form_factors``;
-        with ``among`` (T,) bool, only those, unscaled).
+        those of the receivers covering few pixels replaced
+        (``smallreceivers.small_receiver_form_factors``; with ``among`` (T,) bool, only those,
+        unscaled): with ``small_receivers`` lamps or closed_form, under ``MAX_PIXELS`` pixels
+        for a shooter that ``emits``; with closed_form, under ``BOUNCE_MAX_PIXELS`` for one
+        that only reflects.
 
-        A shooter that only reflects keeps its pixel sums: a receiver's reflected light comes
-        from hundreds of shooters, whose pixel luck averages out, where its direct light comes
-        from a few lamp nodes. Measured (converged, the study's finest uniform meshes of
-        10,000-11,000 elements): every shot corrected, relMSE 0.00035 / 0.00053 / 0.00015
-        (Cornell box / floating / office) in 38 / 19 / 30 s; emitting shooters only, 0.00035 /
-        0.00053 / 0.00016 in 16 / 11 / 17 s; none (pixels), 0.00052 / 0.00062 / 0.00019 in
-        17 / 12 / 14 s."""
-        if self.small_receivers == "pixels" or not emits:
+        A receiver's reflected light comes from hundreds of shooters, whose pixel luck averages
+        out, where its direct light comes from a few lamp nodes. Measured (converged, the
+        study's finest uniform meshes of 10,000-11,000 elements): every receiver under 16
+        pixels corrected in every shot, relMSE 0.00035 / 0.00053 / 0.00015 (Cornell box /
+        floating / office) in 38 / 19 / 30 s; closed_form 0.00035 / 0.00053 / 0.00015 in 25 /
+        16 / 21 s; lamps 0.00035 / 0.00053 / 0.00016 in 16 / 11 / 17 s; pixel sums 0.00052 /
+        0.00062 / 0.00019 in 17 / 12 / 14 s. Refined meshes need closed_form
+        (``scene.model.resolved_small_receivers``)."""
+        if self.small_receivers == "pixels" or (self.small_receivers == "lamps" and not emits):
             return view.form_factors
         with self.profiler.phase("form_factors"):
-            return small_receiver_form_factors(view, self.mesh.corners, self.mesh.areas, among=among)
+            return small_receiver_form_factors(view, self.mesh.corners, self.mesh.areas,
+                                               MAX_PIXELS if emits else BOUNCE_MAX_PIXELS, among=among)
 
     def render_and_keep(self, shooter: int) -> HemicubeView:
         """``render(shooter)``, kept with its row for the shooter's shots (a row from eyes is
