@@ -365,7 +365,7 @@ def write_converged_table(path: Path, rows: list[dict]) -> None:
     machine = f"{platform.machine()}, {platform.system()}, 1 torch thread, {GLContext.renderer_name()}"
     lines = ["# Converged: uniform meshes against refinement judged on the answer", "",
              f"Made by `python scripts/accuracy_study.py --converged` on {machine}. The default configuration "
-             f"(patches shooting in sweeps, hemicube 128; small receivers by their closed form in every run), every run converged to {CONVERGED_UNSHOT:g} unshot power; "
+             f"(patches shooting in sweeps, hemicube 128; small receivers as `auto` makes them: `lamps` on the uniform meshes, `closed_form` on the answer's), every run converged to {CONVERGED_UNSHOT:g} unshot power; "
              "`uniform x f`: the shipped element sizes times f, no refinement; `answer from x f`: that mesh, "
              "then rounds of `refine.criterion: answer` (pattern 2, each round at most doubling the elements, "
              "its mesh then solved afresh with the initial mesh's patches, each holding its elements' children, "
