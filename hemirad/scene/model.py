@@ -57,6 +57,8 @@ def resolved_small_receivers(small_receivers: str, refining: bool) -> str:
     if small_receivers != "auto":
         return small_receivers
     return "closed_form" if refining else "lamps"
+
+
 #: ``solver.reconstruction`` (and ``--reconstruction``): how element values reach the vertices
 #: that shading, exports and error estimates interpolate: a quadratic fitted around each
 #: vertex, or the paper's area-weighted mean (``hemirad.output.reconstruction``).
