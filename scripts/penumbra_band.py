@@ -57,7 +57,7 @@ def main(argv=None) -> int:
     lines = ["# The floating rectangle's penumbra, pixel by pixel", "",
              f"Made by `python scripts/penumbra_band.py --grid {args.grid}`: {len(points)} floor points seeing "
              f"{BAND[0]:.0%}-{BAND[1]:.0%} of the lamp, each at its reference pixel where that shows only floor; "
-             "every run converged to 1e-3 unshot power, small receivers by their closed form in the lamps' shots. Relative error of "
+             "every run converged to 1e-3 unshot power, small receivers as `auto` makes them (`lamps` uniform, `closed_form` refined). Relative error of "
              "the displayed radiance against the path tracer.", "",
              "| run | elements | seconds | pixels | largest | 90th percentile | median | within 3% | mean |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]

@@ -8,9 +8,9 @@ import yaml
 
 import hemirad
 from hemirad.core.errors import SceneError
-from hemirad.scene.model import resolved_small_receivers
 from hemirad.geometry.analytic import point_to_polygon, point_to_triangles
 from hemirad.geometry.mesh import Mesh
+from hemirad.scene.model import resolved_small_receivers
 from hemirad.transport.formfactor import delta_form_factors, hemicube_directions
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.smallreceivers import (BOUNCE_MAX_PIXELS, MAX_PIXELS, atlas_pixels, footprint_pixels, sample_barycentrics,
