@@ -480,8 +480,9 @@ class ProgressiveSolver:
         those of its eyes (the first of a one-element node's is its centroid, the view's own).
         ``among``: as ``shot_row``'s."""
         eyes = self._eyes(shooter)
-        if eyes is None:
-            return self.shot_row(view, among, self._emits(shooter))
+        if eyes is None:  # pixel sums need not know whether it emits
+            emits = self.small_receivers != "pixels" and bool(self._emitting(shooter).any())
+            return self.shot_row(view, among, emits)
         points, weights = eyes[0].cpu().numpy(), eyes[1].tolist()
         _, normal, tangent = self._placement(shooter)
         # a one-element node's first eye is its centroid: the view's own row; a larger node's
@@ -494,11 +495,12 @@ class ProgressiveSolver:
             F += weights[i] * self.shot_row(self.renderer.render_at(points[i], normal, tangent), among, True)
         return F
 
-    def _emits(self, shooter: int) -> bool:
-        """Whether any element of ``shooter`` (a node; without patches, an element) emits."""
+    def _emitting(self, shooter: int) -> torch.Tensor:
+        """(K,) bool: which elements of ``shooter`` (a node; without patches, an element) emit."""
+        members = self.shooter_elements(shooter)
         if self.patches is None:
-            return bool((self.emission[shooter] > 0).any())
-        return bool((self.emission.index_select(0, self.patches.members(shooter)) > 0).any())
+            return (self.emission[members] > 0).any()[None]
+        return (self.emission.index_select(0, members) > 0).any(1)
 
     def _eyes(self, shooter: int) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Where a node whose elements all emit shoots from, with the patches' ``eye_level``:
@@ -506,15 +508,15 @@ class ProgressiveSolver:
         area; None for any other node (it shoots from its centroid)."""
         if self.patches is None or self.patches.eye_level == 0:
             return None
-        members = self.patches.members(shooter)
-        if not bool((self.emission.index_select(0, members) > 0).any(1).all()):
+        if not bool(self._emitting(shooter).all()):
             return None
+        members = self.patches.members(shooter)
         per_element = 4 ** self.patches.eye_level
         areas = self.areas.index_select(0, members)
         weights = (areas / (areas.sum() * per_element)).repeat_interleave(per_element)
         return eye_points(self.mesh.corners_of(members), self.patches.eye_level), weights
 
-    def shot_row(self, view: HemicubeView, among: torch.Tensor | None = None, emits: bool = True) -> torch.Tensor:
+    def shot_row(self, view: HemicubeView, among: torch.Tensor | None, emits: bool) -> torch.Tensor:
         """(T,) the F_sj a shot from ``view`` (of the current mesh) hands out: its pixel sums, or
         those of the receivers covering few pixels replaced
         (``smallreceivers.small_receiver_form_factors``; with ``among`` (T,) bool, only those,
@@ -523,13 +525,8 @@ class ProgressiveSolver:
         that only reflects.
 
         A receiver's reflected light comes from hundreds of shooters, whose pixel luck averages
-        out, where its direct light comes from a few lamp nodes. Measured (converged, the
-        study's finest uniform meshes of 10,000-11,000 elements): every receiver under 16
-        pixels corrected in every shot, relMSE 0.00035 / 0.00053 / 0.00015 (Cornell box /
-        floating / office) in 38 / 19 / 30 s; closed_form 0.00035 / 0.00053 / 0.00015 in 25 /
-        16 / 21 s; lamps 0.00035 / 0.00053 / 0.00016 in 16 / 11 / 17 s; pixel sums 0.00052 /
-        0.00062 / 0.00019 in 17 / 12 / 14 s. Refined meshes need closed_form
-        (``scene.model.resolved_small_receivers``)."""
+        out, where its direct light comes from a few lamp nodes (measured: ``BOUNCE_MAX_PIXELS``,
+        ``scene.model.resolved_small_receivers``)."""
         if self.small_receivers == "pixels" or (self.small_receivers == "lamps" and not emits):
             return view.form_factors
         with self.profiler.phase("form_factors"):
