@@ -89,28 +89,30 @@ def sample_levels(footprint: torch.Tensor, max_level: int = SAMPLE_LEVEL) -> tor
 
 @cached_per_device
 def _face_table(resolution: int) -> tuple[torch.Tensor, ...]:
-    """Per face (5): forward, right, up as the columns of (3, 5) float64; the lowest
-    up-coordinate, first atlas row and rows (5,)."""
-    forward, right, up = (torch.tensor([f[k] for f in FACES], dtype=torch.float64).T.contiguous() for k in range(3))
+    """Per face (5): the local axis (5, 3) int64 and its sign (5, 3) float64 that forward, right
+    and up each lie along (every one is a signed axis); the lowest up-coordinate, first atlas
+    row and rows (5,)."""
+    vectors = torch.tensor([f[:3] for f in FACES], dtype=torch.float64)  # (5, 3 vectors, 3)
+    axis = vectors.abs().argmax(2)
+    sign = vectors.gather(2, axis[:, :, None])[:, :, 0]
     bottom = torch.tensor([f[3] for f in FACES], dtype=torch.float64)
     y0 = torch.tensor([v[1] for v in face_viewports(resolution)], dtype=torch.int64)
     height = torch.tensor([v[3] for v in face_viewports(resolution)], dtype=torch.int64)
-    return forward, right, up, bottom, y0, height
+    return axis, sign, bottom, y0, height
 
 
 def atlas_pixels(local: torch.Tensor, resolution: int) -> torch.Tensor:
     """(N,) int64 the flattened atlas pixel each (N, 3) direction in the hemicube's local frame
     falls in (``formfactor.hemicube_directions``' layout); a direction below the horizon
     gets the side face's lowest row."""
-    forward, right, up, bottom, y0, height = _face_table(resolution, local.device)
+    axis, sign, bottom, y0, height = _face_table(resolution, local.device)
     x, y, z = local.unbind(1)
     ax, ay = x.abs(), y.abs()
     side = torch.where(ax >= ay, torch.where(x > 0, 1, 2), torch.where(y > 0, 3, 4))
-    face = torch.where(z >= torch.maximum(ax, ay), 0, side)[:, None]  # (N, 1)
-    along = torch.gather(local @ forward, 1, face)[:, 0]  # each direction's coordinates on its face
-    sx = torch.gather(local @ right, 1, face)[:, 0] / along
-    sy = torch.gather(local @ up, 1, face)[:, 0] / along
-    face = face[:, 0]
+    face = torch.where(z >= torch.maximum(ax, ay), 0, side)  # (N,)
+    # each direction's coordinates along its face's forward, right and up: signed components
+    along, sx, sy = (local.gather(1, axis.index_select(0, face)) * sign.index_select(0, face)).unbind(1)
+    sx, sy = sx / along, sy / along
     half = 0.5 * resolution
     col = torch.floor((sx + 1.0) * half).long().clamp(0, resolution - 1)
     row = torch.minimum(torch.floor((sy - bottom.index_select(0, face)) * half).long().clamp(min=0),
@@ -128,12 +130,34 @@ def footprint_pixels(view: HemicubeView, corners: torch.Tensor, areas: torch.Ten
     Args:
         corners: (T, 3, 3) the elements' corners; areas: (T,).
     """
+    footprint = _facing_footprint(view, areas)
+    return torch.where(_above_horizon(view, corners), footprint, 0.0)
+
+
+def small_receivers(view: HemicubeView, corners: torch.Tensor, areas: torch.Tensor, max_pixels: float,
+                    among: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n,) the elements (of ``among`` (T,) bool, when given) whose ``footprint_pixels`` lies
+    in (0, ``max_pixels``), and (n,) those footprints; the horizon is tested on these only
+    (the corners' test is most of the cost, and few elements are small)."""
+    footprint = _facing_footprint(view, areas)
+    small = (footprint > 0) & (footprint < max_pixels)
+    candidates = flatnonzero(small if among is None else small & among)
+    rows = candidates.index_select(0, flatnonzero(_above_horizon(view, corners.index_select(0, candidates))))
+    return rows, footprint.index_select(0, rows)
+
+
+def _facing_footprint(view: HemicubeView, areas: torch.Tensor) -> torch.Tensor:
+    """(T,) ``footprint_pixels`` without the horizon test (0 for an element that faces away)."""
     height = -view.distance  # n_j . (eye - p_j): > 0 where the eye sees the front
     local = (view.points - view.eye) @ view.frame.T  # (T, 3)
     m = torch.maximum(local[:, :2].abs().amax(1), local[:, 2])
-    above = (((corners - view.eye) @ view.frame[2]) > 0).any(1)
-    seen = (height > 0) & above & (m > 0)
+    seen = (height > 0) & (m > 0)
     return torch.where(seen, areas * height * (0.25 * view.resolution ** 2) / torch.where(seen, m, 1.0) ** 3, 0.0)
+
+
+def _above_horizon(view: HemicubeView, corners: torch.Tensor) -> torch.Tensor:
+    """(n,) bool: whether any of each element's (n, 3, 3) corners lies above the eye's tangent plane."""
+    return (((corners - view.eye) @ view.frame[2]) > 0).any(1)
 
 
 def visible_form_factors(views: Sequence[HemicubeView], view_of: torch.Tensor, rows: torch.Tensor,
@@ -221,12 +245,10 @@ def small_receiver_form_factors(view: HemicubeView, corners: torch.Tensor, areas
             (the caller scales what it needs; ``adaptive.answer`` per split element).
     """
     pixel_sums = view.form_factors
-    footprint = footprint_pixels(view, corners, areas)
-    small = (footprint > 0) & (footprint < max_pixels)
-    rows = flatnonzero(small if among is None else small & among)
+    rows, footprint = small_receivers(view, corners, areas, max_pixels, among)
     if len(rows) == 0:
         return pixel_sums
-    levels = sample_levels(footprint.index_select(0, rows), max_level)
+    levels = sample_levels(footprint, max_level)
     row_corners = corners.index_select(0, rows)
     sampled, unoccluded = visible_form_factors([view], torch.zeros_like(rows), rows, row_corners,
                                                areas.index_select(0, rows), levels)
