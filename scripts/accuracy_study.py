@@ -219,14 +219,20 @@ def run_study(scenes, methods, settings: SolverSettings, element_scale: float, v
 CONVERGED_UNIFORM = (2.0, 1.41, 1.0, 0.71, 0.5)
 #: The answer's runs start from the shipped mesh with element sizes times this.
 CONVERGED_ANSWER_START = (2.0, 1.0)
-#: Rounds of the answer's runs. Each round solves its mesh afresh (as a run does); a fourth
-#: round (about 45,000 elements) would take a few minutes a scene. A run's default is one.
-CONVERGED_ROUNDS = 3
+#: Rounds of the answer's runs, to at most this many elements (the rounds grow the mesh by
+#: equal ratios, each at most 5.5 times). Each round solves its mesh afresh (as a run does);
+#: a budget of 45,000 elements took a few minutes a scene. A run's default is one round.
+CONVERGED_ROUNDS, CONVERGED_BUDGET = 3, 30_000
 CONVERGED_UNSHOT = 1e-3
 #: The issue's goal, tried per scene: refinement judged on the answer from the coarser mesh
 #: and from the shipped one (what ``--refine pattern2 --max-elements N`` does), rounds until a
 #: third of the finest uniform mesh's elements.
 GOAL = "answer to a third of the finest's elements"
+#: The same goal as a user would ask for it: the finest uniform mesh's RMS error named as the
+#: answer's ``tolerance``, which its rounds stop by (the interpolation estimate, as the
+#: study's runs stop by; a run's default, the final gathers, costs a few seconds a round) and
+#: are sized for (``answer.tolerance_splits``); at most the scene's element budget.
+GOAL_TOLERANCE = "answer to the finest's error"
 GOAL_STARTS, GOAL_ROUNDS = (2.0, 1.0), 8
 #: The finest uniform mesh and the goal's runs are timed this many times, alternating, and
 #: keep their fastest: the goal compares their seconds, and the machine's speed drifts by
@@ -265,25 +271,30 @@ def converged_study(scenes, log=print) -> list[dict]:
             rows.append(_uniform_run(name, shipped, comparison, factor))
             log(_converged_line(rows[-1]), flush=True)
         for factor in CONVERGED_ANSWER_START:
-            _answer_run(name, shipped, comparison, factor, CONVERGED_ROUNDS, None, f"answer from x{factor:g}", rows, log)
+            _answer_run(name, shipped, comparison, factor, CONVERGED_ROUNDS, CONVERGED_BUDGET,
+                        f"answer from x{factor:g}", rows, log)
         # the goal: the finest uniform mesh's error with a third of its elements and half its seconds
         finest = _finest_uniform([r for r in rows if r["scene"] == name])
-        goals = _goal_runs(name, shipped, comparison, finest["elements"] // 3, log)
+        goals = _goal_runs(name, shipped, comparison, finest, log)
         for _ in range(GOAL_TIMINGS - 1):  # timed again, alternating, each keeping its fastest
             again = _uniform_run(name, shipped, comparison, finest["value"])
             log(_converged_line(again), flush=True)
             finest["seconds"] = min(finest["seconds"], again["seconds"])
-            for goal, run in zip(goals, _goal_runs(name, shipped, comparison, finest["elements"] // 3, log)):
+            for goal, run in zip(goals, _goal_runs(name, shipped, comparison, finest, log)):
                 goal["seconds"] = min(goal["seconds"], run["seconds"])
         rows += goals
     return rows
 
 
-def _goal_runs(name, shipped, comparison, budget: int, log) -> list[dict]:
-    """The goal's runs, one per start in ``GOAL_STARTS``, to ``budget`` elements."""
+def _goal_runs(name, shipped, comparison, finest: dict, log) -> list[dict]:
+    """The goal's runs, per start in ``GOAL_STARTS``: to a third of the ``finest`` uniform
+    run's elements, and to its error (``GOAL_TOLERANCE``)."""
     rows: list[dict] = []
     for factor in GOAL_STARTS:
-        _answer_run(name, shipped, comparison, factor, GOAL_ROUNDS, budget, GOAL, rows, log, every_round=False)
+        _answer_run(name, shipped, comparison, factor, GOAL_ROUNDS, finest["elements"] // 3, GOAL, rows, log,
+                    every_round=False)
+        _answer_run(name, shipped, comparison, factor, GOAL_ROUNDS, None, GOAL_TOLERANCE, rows, log,
+                    every_round=False, tolerance=math.sqrt(finest["relative_mse"]))
     return rows
 
 
@@ -301,10 +312,11 @@ def _uniform_run(name, shipped, comparison, factor: float) -> dict:
 
 
 def _answer_run(name, shipped, comparison, factor: float, rounds: int, budget: int | None, label: str,
-                rows: list[dict], log, every_round: bool = True) -> None:
+                rows: list[dict], log, every_round: bool = True, tolerance: float = 0.0) -> None:
     """Refinement judged on the answer from the shipped mesh's elements times ``factor``,
-    ``rounds`` rounds within ``budget`` elements (None: the scene's); a row after every
-    round (``every_round``), else after the last."""
+    ``rounds`` rounds within ``budget`` elements (None: the scene's), stopping where the
+    interpolation estimate is under ``tolerance``; a row after every round (``every_round``),
+    else after the last."""
     scene = shipped.with_element_sizes_scaled(factor)
     scene.solver.unshot_fraction = CONVERGED_UNSHOT
     scene.refine.pattern, scene.refine.criterion = "pattern2", ANSWER
@@ -325,7 +337,7 @@ def _answer_run(name, shipped, comparison, factor: float, rounds: int, budget: i
             log(_converged_line(rows[-1]), flush=True)
 
     try:
-        refine_by_answer(solver, refiner, scene.refine.max_elements, 0.0, rounds, shoot_on,
+        refine_by_answer(solver, refiner, scene.refine.max_elements, tolerance, rounds, shoot_on,
                          patches_for=lambda: refined_patches(scene, solver), vertex_values=reconstructed_vertex_values)
     finally:
         solver.close()
@@ -344,10 +356,11 @@ def _goal_lines(rows: list[dict]) -> list[str]:
     at most a third of its elements in at most half its seconds."""
     finest = _finest_uniform(rows)
     lines = []
-    for goal in (r for r in rows if r["method"] == GOAL):
+    for goal in (r for r in rows if r["method"] in (GOAL, GOAL_TOLERANCE)):
         met = (goal["relative_mse"] <= finest["relative_mse"] and 3 * goal["elements"] <= finest["elements"]
                and 2 * goal["seconds"] <= finest["seconds"])
-        lines += [f"Goal from x{goal['value']:g} ({'met' if met else 'not met'}): relMSE {goal['relative_mse']:.5f} "
+        kind = "a third of its elements" if goal["method"] == GOAL else "its error as the tolerance"
+        lines += [f"Goal, {kind}, from x{goal['value']:g} ({'met' if met else 'not met'}): relMSE {goal['relative_mse']:.5f} "
                   f"against the finest uniform mesh's {finest['relative_mse']:.5f}, with "
                   f"{goal['elements'] / finest['elements']:.0%} of its elements in "
                   f"{goal['seconds'] / finest['seconds']:.0%} of its seconds.", ""]
@@ -367,12 +380,14 @@ def write_converged_table(path: Path, rows: list[dict]) -> None:
              f"Made by `python scripts/accuracy_study.py --converged` on {machine}. The default configuration "
              f"(patches shooting in sweeps, hemicube 128; small receivers as `auto` makes them: `lamps` on the uniform meshes, `closed_form` on the answer's), every run converged to {CONVERGED_UNSHOT:g} unshot power; "
              "`uniform x f`: the shipped element sizes times f, no refinement; `answer from x f`: that mesh, "
-             "then rounds of `refine.criterion: answer` (pattern 2, each round at most doubling the elements, "
+             f"then {CONVERGED_ROUNDS} rounds of `refine.criterion: answer` to {CONVERGED_BUDGET:,} elements (pattern 2, grown by equal ratios, each round at most 5.5 times, "
              "its mesh then solved afresh with the initial mesh's patches, each holding its elements' children, "
              "emitters shooting element by element, each from the centroids of four equal parts of itself: `solver.emitter_eyes`), "
              "a row after each round with the seconds from the start; `answer to a third of the finest's elements`: "
              f"from x{GOAL_STARTS[0]:g} and from the shipped mesh, rounds until a third of the finest uniform mesh's elements, "
-             "grown by equal ratios (the goal: that mesh's relMSE with a third of its elements in half its seconds; "
+             "grown by equal ratios (the goal: that mesh's relMSE with a third of its elements in half its seconds); "
+             "`answer to the finest's error`: the same starts, that mesh's RMS named as the tolerance, which the rounds "
+             "stop by (the interpolation estimate) and are sized for (the error taken to fall as 1 / elements) ("
              f"the finest uniform mesh and these runs timed {GOAL_TIMINGS} times, alternating, each keeping its fastest). relMSE as in the study above; "
              "RMS = sqrt(relMSE), over the pixels the camera shows. The run's own estimates of that RMS, by "
              "final gathers (`evaluation/gathered_error.py`, with their standard errors): picture, at the "
@@ -387,7 +402,8 @@ def write_converged_table(path: Path, rows: list[dict]) -> None:
                   "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in (r for r in rows if r["scene"] == name):
             label = (f"uniform x{r['value']:g}" if r["method"] == "uniform"
-                     else f"{GOAL}, from x{r['value']:g}" if r["method"] == GOAL else r["method"])
+                     else f"{r['method']}, from x{r['value']:g}" if r["method"] in (GOAL, GOAL_TOLERANCE)
+                     else r["method"])
             rms = math.sqrt(r["relative_mse"])
             lines.append(f"| {label} | {r['elements']} | {r['shots']} | {r['seconds']:.1f} | "
                          f"{r['relative_mse']:.5f} | {rms:.4f} | {r['estimated_image_error']:.4f} "

@@ -11,7 +11,7 @@ import torch
 import hemirad
 from hemirad.core.fastops import flatnonzero
 from hemirad.adaptive.answer import (adopt_and_regather, element_errors, estimated_relative_error,
-                                     refine_by_answer, round_splits, split_by_error)
+                                     refine_by_answer, round_splits, split_by_error, tolerance_splits)
 from hemirad.output.display import vertex_values
 from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.adaptive.refine import Refiner
@@ -146,7 +146,7 @@ def test_power_balances_to_1e9_through_rounds_of_late_splits():
     assert solver._eyes(int(tree.root[int(solver.patches.patch[0])])) is not None
     refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
     try:
-        rounds = refine_by_answer(solver, refiner, 4 * T, 0.0, 2, lambda: solver.run(10_000, 1e-3),
+        rounds = refine_by_answer(solver, refiner, 9 * T, 0.0, 2, lambda: solver.run(10_000, 1e-3),
                                   vertex_values=vertex_values)
         s = solver.state
         assert_power_balances(s, solver.areas, solver.reflectance, solver.emission, solver.emitted_power, rtol=1e-9)
@@ -157,17 +157,26 @@ def test_power_balances_to_1e9_through_rounds_of_late_splits():
 
 
 def test_rounds_to_a_budget_grow_the_mesh_by_equal_ratios_and_never_past_it():
-    # 730 elements to 3,387 with four children a split: growth 4.64 needs two rounds of at
-    # most 2.5 times, each about 4.64^(1/2) = 2.15, rather than one of 2.5 and a sliver
+    # 730 elements to 20,000 with four children a split: growth 27.4 needs two rounds of at
+    # most 5.5 times, each about 27.4^(1/2) = 5.23, rather than one of 5.5 and then 5
     elements, growth = 730, []
-    while (count := round_splits(elements, 3387, 4, 8 - len(growth))) > 0:
+    while (count := round_splits(elements, 20000, 4, 8 - len(growth))) > 0:
         growth.append((elements + 3 * count) / elements)
         elements += 3 * count
-    assert len(growth) == 2 and max(growth) < 2.2 and min(growth) > 2.1 and 3387 - 3 < elements <= 3387
-    assert round_splits(3387, 3387, 4, 8) == 0
-    assert round_splits(730, 3387, 4, 1) == 365  # too few rounds left to reach it: half the elements split
+    assert len(growth) == 2 and max(growth) < 5.3 and min(growth) > 5.1 and 20000 - 3 < elements <= 20000
+    assert round_splits(20000, 20000, 4, 8) == 0
+    assert round_splits(730, 3387, 4, 1) == (3387 - 730) // 3  # within one round's growth: all of it
+    assert round_splits(730, 20000, 4, 1) == 1095  # too few rounds left to reach it: 1.5 times the elements split
     # grading left a sliver of the budget: not worth a fresh solve of the whole mesh
     assert round_splits(3692, 3701, 4, 6) == 0 and round_splits(3341, 3701, 4, 7) == 120
+
+
+def test_a_round_adds_what_the_tolerance_needs_with_the_error_falling_as_one_over_elements():
+    # at twice the tolerance, twice the elements: 1,000 more, a third of that in splits of 4 children
+    assert tolerance_splits(1000, 0.02, 0.01, 4) == 334
+    assert tolerance_splits(1000, 0.0105, 0.01, 4) == 17
+    assert tolerance_splits(1000, 0.01, 0.01, 4) == 0 and tolerance_splits(1000, 0.005, 0.01, 4) == 0
+    assert tolerance_splits(1000, 0.02, 0.01, 2) == 1000
 
     # solved: grading's extra splits (2:1 between neighbours) never take the mesh past it
     mesh = closed_box(element_size=0.25)

@@ -174,13 +174,21 @@ def reaching_nodes(solver: "ProgressiveSolver", split: torch.Tensor) -> list[int
 
 
 #: The share of the elements a round may split: with pattern 2 (4 children) a round at most
-#: grows the mesh 2.5 times, before grading. Each round is a solve, and the rounds' solves
-#: sum to about g / (g - 1) times the last for a growth g. Measured (runs to a third of the
-#: finest uniform mesh's elements from x2; relMSE, seconds against that mesh's), rounds at
-#: most doubling against at most 2.5 times: Cornell box 0.00030 in 42% against 0.00032 in
-#: 25% (three rounds against two), floating 0.00008 in 52% against 0.00012 in 40% (the
-#: finest's 0.00052), office the same (two rounds either way).
-ROUND_SHARE = 0.5
+#: grows the mesh 5.5 times, before grading. Each round is a fresh solve of its whole mesh, and
+#: a split goes two generations deep (``GENERATIONS``), so one large round places its elements
+#: as well as two smaller ones, for one solve fewer. Measured (runs from x2 to a third of the
+#: finest uniform mesh's elements, relMSE and the faster of two timings, alternating): at most
+#: 2.5 times (two rounds) against 5.5 times (one): floating 0.00005 in 6.3 s against 0.00005 in
+#: 4.7 s, Cornell box 0.00023 in 9.7 s against 0.00024 in 5.6 s, office one round either way
+#: (0.00013). Earlier, before children split again within a round, rounds of 2.5 times against
+#: doubling were 0.00032 in 25% of the finest's seconds against 0.00030 in 42% (Cornell box).
+ROUND_SHARE = 1.5
+#: With a tolerance, a round adds the elements that the error falling as 1 / elements would
+#: need to reach it (``tolerance_splits``): it has fallen at least about that fast in every
+#: round measured (rounds from x2 and the shipped meshes on the bundled scenes: the
+#: interpolation estimate falls as elements^-0.9 to elements^-6), so a round sized so seldom
+#: stops short, and a run close to its tolerance is not grown 5.5 times.
+ERROR_ORDER = 1.0
 #: A round may split an element and then its children (``split_by_error``), where a child's
 #: score (error squared times area) is predicted as this share of its parent's: a quarter of
 #: the area, and a little under half the error (an edge's error falls with the element's
@@ -197,6 +205,13 @@ GENERATIONS = 2
 #: elements, whose first round's grading left 3,692, then made rounds of 6 and 3 elements,
 #: each a solve as long as the first (27.9 s where one round takes 14.7).
 MIN_ROUND_GROWTH = 0.05
+
+
+def tolerance_splits(elements: int, estimated: float, tolerance: float, children: int) -> int:
+    """How many of its ``elements`` a round splits (a split adds ``children`` - 1) to bring the
+    ``estimated`` error to ``tolerance``, the error taken to fall as elements^-``ERROR_ORDER``."""
+    needed = elements * (estimated / tolerance) ** (1.0 / ERROR_ORDER) - elements
+    return max(0, math.ceil(needed / (children - 1)))
 
 
 def round_splits(elements: int, max_elements: int, children: int, rounds_left: int) -> int:
@@ -241,8 +256,9 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
     """Alternate shooting to the stopping rule (``shoot_on``) and refining where the answer
     is worst, until the estimated relative error is under ``tolerance``, the mesh has
     ``max_elements``, or ``rounds`` refinements were made. Each round may at most grow the
-    element count 2.5 times (``ROUND_SHARE``), so the estimate is renewed as the mesh
-    learns; the rounds to the budget grow it by equal ratios (``round_splits``), and
+    element count 5.5 times (``ROUND_SHARE``), so the estimate is renewed as the mesh
+    learns; the rounds to the budget grow it by equal ratios (``round_splits``), a round
+    adds no more than the tolerance is predicted to need (``tolerance_splits``), and
     grading's extra splits never take it past the budget.
 
     ``refiner`` supplies the split pattern, the 2:1 grading and the depth and size limits.
@@ -269,6 +285,8 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
         count = round_splits(mesh.num_elements, max_elements, refiner.children, rounds - index)
         if index == rounds or estimated <= tolerance or count <= 0:
             break
+        if tolerance > 0:
+            count = min(count, tolerance_splits(mesh.num_elements, estimated, tolerance, refiner.children))
         new_mesh, parent = split_by_error(refiner, mesh, errors, count)
         while new_mesh.num_elements > max_elements and count > 0:
             # grading's splits came on top of the count's: fewer, until the budget holds

@@ -235,9 +235,10 @@ class RefineOptions:
     view_surface: str | None = None  # surface shown in mesh.png; default: the floor
     # criterion "answer": stop refining when the estimated relative RMS error (by final
     # gathers, ``evaluation.gathered_error``; about 1-2x what the references measure) is below
-    # ``tolerance``, or after ``rounds`` refinements (each grows the elements at most 2.5 times)
+    # ``tolerance``, or after ``rounds`` refinements (each grows the elements at most 5.5 times,
+    # and no more than the tolerance is predicted to need: ``adaptive.answer.tolerance_splits``)
     tolerance: float = 0.01
-    rounds: int = 1  # each round grows the elements up to 2.5 times, and the seconds more (figures/accuracy_converged.md)
+    rounds: int = 1  # each round grows the elements up to 5.5 times, and the seconds more (figures/accuracy_converged.md)
 
     @property
     def enabled(self) -> bool:

@@ -38,6 +38,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 17: a round of refinement by the answer grows the mesh up to 5.5 times, and no more than
+#: its tolerance is predicted to need;
 #: 16: only the lamps' shots correct receivers of a few pixels (reflecting shooters those
 #: under a pixel, refining), and unrefined runs correct the lamps';
 #: 15: a face hovering a hair in front of a surface covers it where contacts are meshed;
@@ -47,7 +49,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 16
+ARITHMETIC = 17
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
