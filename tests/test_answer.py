@@ -178,6 +178,31 @@ def test_a_round_adds_what_the_tolerance_needs_with_the_error_falling_as_one_ove
     assert tolerance_splits(1000, 0.01, 0.01, 4) == 0 and tolerance_splits(1000, 0.005, 0.01, 4) == 0
     assert tolerance_splits(1000, 0.02, 0.01, 2) == 1000
 
+
+def test_rounds_stop_at_the_tolerance_and_make_no_round_for_a_sliver_of_it():
+    # the closed box refined by the answer toward a tolerance: each round is sized for it, and
+    # a run whose estimate is within MIN_ROUND_GROWTH of it stops rather than solve again
+    mesh = closed_box(element_size=0.25)
+    T = mesh.num_elements
+    rho, E = random_materials(T, seed=2, span=0.6, low=0.2, glowing=32)
+    reports = []
+    for tolerance in (0.02, 0.01):
+        tree = build_patches(mesh, np.full(T, 0.5))
+        solver = ProgressiveSolver(mesh, rho, E, 32, patches=PatchShooters(tree, torch.device("cpu")), near_reach=3.0)
+        estimates = iter([0.04, 0.0101, 0.005])
+        try:
+            reports.append(refine_by_answer(solver, Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E),
+                                            100 * T, tolerance, 4, lambda: solver.run(10_000, 1e-2),
+                                            vertex_values=vertex_values, estimate=lambda: next(estimates)))
+        finally:
+            solver.close()
+    at_twice, near = reports
+    # at twice the tolerance, about twice the elements (grading adds a few), then under it: stop
+    assert [r.estimated_error for r in at_twice] == [0.04, 0.0101]
+    assert 2 * T <= at_twice[1].elements < 2.3 * T
+    # four times the tolerance, then 1% over it: no round for 1% more elements
+    assert [r.estimated_error for r in near] == [0.04, 0.0101] and 4 * T <= near[1].elements < 4.6 * T
+
     # solved: grading's extra splits (2:1 between neighbours) never take the mesh past it
     mesh = closed_box(element_size=0.25)
     T = mesh.num_elements

@@ -1,5 +1,6 @@
 """Patches shoot, elements receive: grouping, conservation, closed-box answers, and the same
 answer at two patch sizes."""
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,7 @@ import torch
 import hemirad
 from hemirad.adaptive.shooter_split import point_source_test
 from hemirad.assembly import NEAR_REACH, make_solver
+from hemirad.core.errors import HemiradWarning
 from hemirad.geometry.patches import build_patches, element_sides
 from hemirad.transport.shooters import PatchShooters, back_face_share, either, eye_points, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver
@@ -89,6 +91,28 @@ def test_power_balances_in_sweeps_and_they_converge_to_what_single_shots_do(tota
             assert state.shots == 100 and solver.sweep_count > 2 and bool((state.unshot > 0).any())
         else:
             answers.append(state.radiosity)
+    torch.testing.assert_close(answers[0], answers[1], rtol=1e-7, atol=0)
+
+
+def test_sweeps_that_outgrow_the_memory_asked_for_say_so_and_go_on_one_patch_at_a_time():
+    # The open box with 64 kB for the kept light: the first sweeps' matrices outgrow it, the
+    # user is told which option keeps the sweeps, and the solve goes on to the same answer
+    mesh = open_box(element_size=0.25)
+    rho, E = random_materials(mesh.num_elements, seed=1, span=0.7, low=0.2, glowing=8)
+    answers = []
+    for cache_bytes in (256 << 20, 64 << 10):
+        solver = patch_solver(mesh, rho, E, 0.5, sweeps=True, cache_bytes=cache_bytes)
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                state = solver.run(max_shots=100000, unshot_fraction=1e-9)
+        finally:
+            solver.close()
+        said = [str(w.message) for w in caught if issubclass(w.category, HemiradWarning)]
+        assert solver.sweeps == (cache_bytes > 1 << 20) and len(said) == (0 if solver.sweeps else 1)
+        assert all("solver.cache_mb" in message for message in said)
+        assert_power_balances(state, mesh.areas, rho, E, (E * mesh.areas[:, None]).sum(0), rtol=1e-9)
+        answers.append(state.radiosity)
     torch.testing.assert_close(answers[0], answers[1], rtol=1e-7, atol=0)
 
 

@@ -7,12 +7,14 @@ receiver j the radiosity  rho_j dB_s F_sj A_s / A_j  (docs/DESIGN.md §1).
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Callable, Generator, Protocol
 
 import numpy as np
 import torch
 
+from hemirad.core.errors import HemiradWarning
 from hemirad.core.fastops import flatnonzero, row_sums
 from hemirad.core.runtime import deterministic, keep_freed_memory, torch_threads
 from hemirad.core.timing import Profiler
@@ -430,6 +432,10 @@ class ProgressiveSolver:
             if i + 1 == len(order):
                 self._step(making, to_end=True)
             if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
+                warnings.warn(f"the light kept for sweeps outgrew solver.cache_mb ({self.rows.budget_bytes >> 20} MB) "
+                              f"at {self.mesh.num_elements} elements: from here patches shoot one at a time, drawing "
+                              f"again each hemicube whose row was dropped, which can take many times longer; a "
+                              f"larger solver.cache_mb keeps the sweeps", HemiradWarning)
                 self.sweeps, self._transport = False, None
                 return self._shoot_patch()
         with self.profiler.phase("update"):
