@@ -86,6 +86,13 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _megabytes(text: str) -> float:
+    value = _number(text)
+    if not 0.0 <= value <= 1e7:
+        raise argparse.ArgumentTypeError(f"expected a number of megabytes from 0 to 1e7, got {text}")
+    return value
+
+
 def _fraction(text: str) -> float:
     value = _number(text)
     if not 0.0 <= value < 1.0:
@@ -130,6 +137,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="how element values reach the vertices that shading and exports interpolate: "
                              "quadratic (the default), a quadratic fitted around each vertex; mean, the "
                              "area-weighted mean of its elements, as in the paper (solver.reconstruction)")
+    parser.add_argument("--cache-mb", type=_megabytes, metavar="MB",
+                        help="memory for the form-factor rows and the light kept between sweeps; a solve that "
+                             "outgrows it goes on one patch at a time, which can take many times longer "
+                             "(solver.cache_mb, default 256)")
     parser.add_argument("--error-samples", type=_non_negative_int, metavar="N",
                         help="points at which the solution checks its own error by final gathers "
                              "(stats.json's estimated_error; 0: none; solver.error_samples, default 1000)")
@@ -225,6 +236,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
                       "device": ("--device", args.device), "patch_size": ("--patch-size", args.patch_size),
                       "small_receivers": ("--small-receivers", args.small_receivers),
                       "reconstruction": ("--reconstruction", args.reconstruction),
+                      "cache_mb": ("--cache-mb", args.cache_mb),
                       "error_samples": ("--error-samples", args.error_samples),
                       "picture_error_samples": ("--picture-error-samples", args.picture_error_samples)}
     refine_options = {"pattern": ("--refine", args.refine), "criterion": ("--criterion", args.criterion),

@@ -61,6 +61,15 @@ def test_quiet_mode_prints_nothing(tmp_path):
     assert run.returncode == 0 and run.stdout == "" and run.stderr == ""
 
 
+def test_a_solve_that_outgrows_cache_mb_says_so_and_which_option_keeps_its_sweeps(tmp_path, capsys):
+    assert main([str(DATA / "small_room.yaml"), "-o", str(tmp_path), "--cache-mb", "0.01", "--error-samples", "0", "--shots", "100000",
+                 "--unshot-fraction", "0.01"]) == 0
+    err = capsys.readouterr().err
+    assert "outgrew solver.cache_mb" in err and "--cache-mb" in err and "Traceback" not in err
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    assert stats["unshot_fraction"] < 0.01
+
+
 def one_paragraph_error(capsys, argv):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()

@@ -435,7 +435,7 @@ class ProgressiveSolver:
                 warnings.warn(f"the light kept for sweeps outgrew solver.cache_mb ({self.rows.budget_bytes >> 20} MB) "
                               f"at {self.mesh.num_elements} elements: from here patches shoot one at a time, drawing "
                               f"again each hemicube whose row was dropped, which can take many times longer; a "
-                              f"larger solver.cache_mb keeps the sweeps", HemiradWarning)
+                              f"larger solver.cache_mb (--cache-mb) keeps the sweeps", HemiradWarning)
                 self.sweeps, self._transport = False, None
                 return self._shoot_patch()
         with self.profiler.phase("update"):
