@@ -93,6 +93,13 @@ def _megabytes(text: str) -> float:
     return value
 
 
+def _round_growth(text: str) -> float:
+    value = _number(text)
+    if not 1.0 < value <= 100.0:
+        raise argparse.ArgumentTypeError(f"expected a number above 1 and at most 100, got {text}")
+    return value
+
+
 def _fraction(text: str) -> float:
     value = _number(text)
     if not 0.0 <= value < 1.0:
@@ -173,6 +180,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "(refine.tolerance, default 0.01)")
     refine.add_argument("--rounds", type=_depth, metavar="N",
                         help="criterion answer: at most N refinements between converged solves (refine.rounds)")
+    refine.add_argument("--round-growth", type=_round_growth, metavar="G",
+                        help="criterion answer: the most one refinement may grow the elements; smaller rounds "
+                             "cost more solves and find more of what a coarse solve cannot see "
+                             "(refine.round_growth, default 5.5)")
     pictures = parser.add_argument_group("pictures")
     pictures.add_argument("--falsecolour", action="append", type=_surface_name, metavar="SURFACE",
                           help="also write falsecolour_SURFACE.png, the light falling on that surface (e.g. "
@@ -244,7 +255,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
                       "relative": ("--relative" if args.relative else "--absolute", args.relative),
                       "max_depth": ("--max-depth", args.max_depth), "max_elements": ("--max-elements", args.max_elements),
                       "shots": ("--refine-shots", args.refine_shots), "tolerance": ("--tolerance", args.tolerance),
-                      "rounds": ("--rounds", args.rounds)}
+                      "rounds": ("--rounds", args.rounds), "round_growth": ("--round-growth", args.round_growth)}
     for block, options in (("solver", solver_options), ("refine", refine_options)):
         given = {k: v for k, (_, v) in options.items() if v is not None}
         setattr(scene, block, replace(getattr(scene, block), **given))

@@ -167,6 +167,9 @@ def test_rounds_to_a_budget_grow_the_mesh_by_equal_ratios_and_never_past_it():
     assert round_splits(20000, 20000, 4, 8) == 0
     assert round_splits(730, 3387, 4, 1) == (3387 - 730) // 3  # within one round's growth: all of it
     assert round_splits(730, 20000, 4, 1) == 1095  # too few rounds left to reach it: 1.5 times the elements split
+    # rounds of at most 2.5 times (refine.round_growth): four to the same budget, each 27.4^(1/4) = 2.29
+    assert round_splits(730, 20000, 4, 8, growth=2.5) == int(((20000 / 730) ** 0.25 - 1) * 730 / 3)
+    assert round_splits(730, 20000, 4, 1, growth=2.5) == 365
     # grading left a sliver of the budget: not worth a fresh solve of the whole mesh
     assert round_splits(3692, 3701, 4, 6) == 0 and round_splits(3341, 3701, 4, 7) == 120
 

@@ -80,6 +80,7 @@ def test_an_output_path_that_is_a_file(tmp_path, capsys):
     ("--max-elements", "6000000", "5,000,000"),
     ("--checkpoint-every", "-3", ">= 0"),
     ("--cache-mb", "-1", "megabytes from 0 to 1e7"),
+    ("--round-growth", "1", "above 1 and at most 100"),
     ("--refine", "pattern3", "invalid choice"),
     ("--criterion", "gradient2", "invalid choice"),
     ("--device", "gpu", "expected one of cpu, cuda, cuda:N, auto"),

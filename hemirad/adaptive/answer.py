@@ -173,8 +173,8 @@ def reaching_nodes(solver: "ProgressiveSolver", split: torch.Tensor) -> list[int
     return nodes
 
 
-#: The share of the elements a round may split: with pattern 2 (4 children) a round at most
-#: grows the mesh 5.5 times, before grading. Each round is a fresh solve of its whole mesh, and
+#: How many times a round may grow the mesh, before grading, by default (``refine.round_growth``;
+#: pattern 2 splits up to 1.5 times the elements, children split again). Each round is a fresh solve of its whole mesh, and
 #: a split goes two generations deep (``GENERATIONS``), so one large round places its elements
 #: as well as two smaller ones, for one solve fewer. Measured (runs from x2 to a third of the
 #: finest uniform mesh's elements, relMSE and the faster of two timings, alternating): at most
@@ -182,7 +182,11 @@ def reaching_nodes(solver: "ProgressiveSolver", split: torch.Tensor) -> list[int
 #: 4.7 s, Cornell box 0.00023 in 9.7 s against 0.00024 in 5.6 s, office one round either way
 #: (0.00013). Earlier, before children split again within a round, rounds of 2.5 times against
 #: doubling were 0.00032 in 25% of the finest's seconds against 0.00030 in 42% (Cornell box).
-ROUND_SHARE = 1.5
+#: What fewer rounds lose is local: the floor 1 cm outside the Cornell box's blocks (the slow
+#: contact test, 41,000 elements) is within 5% at 25 of 26 points, median 0.8%, in three rounds
+#: of at most 2.5 times, and at 23 of 26, median 2.0%, in two of at most 5.5: a feature the
+#: first solve cannot see is found by the rounds after it.
+ROUND_GROWTH = 5.5
 #: With a tolerance, a round adds the elements that the error falling as 1 / elements would
 #: need to reach it (``tolerance_splits``), so a run close to its tolerance is not grown 5.5
 #: times. Measured (the interpolation estimate over rounds of 2.5 times, the three bundled
@@ -219,15 +223,16 @@ def tolerance_splits(elements: int, estimated: float, tolerance: float, children
     return max(0, math.ceil(needed / (children - 1)))
 
 
-def round_splits(elements: int, max_elements: int, children: int, rounds_left: int) -> int:
+def round_splits(elements: int, max_elements: int, children: int, rounds_left: int,
+                 growth: float = ROUND_GROWTH) -> int:
     """How many of its ``elements`` a round splits on the way to ``max_elements`` (a split
-    adds ``children`` - 1), ``rounds_left`` rounds at most: ``ROUND_SHARE`` of them where the
-    budget needs more rounds than that; else the rounds it needs, each growing the mesh by at
-    most 1 + (``children`` - 1) ``ROUND_SHARE``, grow it by equal ratios, so no solve is spent
+    adds ``children`` - 1), ``rounds_left`` rounds at most: enough to grow the mesh ``growth``
+    times where the budget needs more rounds than that; else the rounds it needs, each growing
+    the mesh at most ``growth`` times, grow it by equal ratios, so no solve is spent
     on a last sliver of the budget; none where the budget leaves less than
     ``MIN_ROUND_GROWTH`` of the mesh. Measured (runs to a third of the finest uniform mesh's
     elements from x2, rounds at most doubling; relMSE, seconds against that mesh's): rounds
-    of ``ROUND_SHARE`` and the rest in a last one, Cornell box 0.00032 in 40%, floating
+    of the most growth and the rest in a last one, Cornell box 0.00032 in 40%, floating
     0.00008 in 73%, office 0.00012 in 48%; equal ratios 0.00030 in 36%, 0.00008 in 59%,
     0.00013 in 47%; the rest taken with the round before (one solve fewer) 0.00032 in 28%,
     0.00012 in 56%, 0.00017 in 33% (office's round was too large for the answer it was
@@ -236,9 +241,9 @@ def round_splits(elements: int, max_elements: int, children: int, rounds_left: i
     if room <= 0 or room * (children - 1) < MIN_ROUND_GROWTH * elements:
         return 0
     ratio = max_elements / elements
-    rounds = max(1, math.ceil(math.log(ratio) / math.log(1.0 + (children - 1) * ROUND_SHARE) - 1e-9))
+    rounds = max(1, math.ceil(math.log(ratio) / math.log(growth) - 1e-9))
     if rounds > rounds_left:
-        return min(room, int(ROUND_SHARE * elements))
+        return min(room, int((growth - 1.0) * elements / (children - 1)))
     return min(room, int((ratio ** (1.0 / rounds) - 1.0) * elements / (children - 1)))
 
 
@@ -261,7 +266,7 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
     """Alternate shooting to the stopping rule (``shoot_on``) and refining where the answer
     is worst, until the estimated relative error is under ``tolerance``, the mesh has
     ``max_elements``, or ``rounds`` refinements were made. Each round may at most grow the
-    element count 5.5 times (``ROUND_SHARE``), so the estimate is renewed as the mesh
+    element count ``refiner.options.round_growth`` times (``ROUND_GROWTH``), so the estimate is renewed as the mesh
     learns; the rounds to the budget grow it by equal ratios (``round_splits``), a round
     adds no more than the tolerance is predicted to need (``tolerance_splits``), and
     grading's extra splits never take it past the budget.
@@ -287,7 +292,8 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
         estimated = (estimated_relative_error(mesh, shown, vertex_values, errors, solver.emission)
                      if estimate is None else estimate())
         reports.append(RoundReport(index, mesh.num_elements, 0, estimated, solver.state.shots))
-        count = round_splits(mesh.num_elements, max_elements, refiner.children, rounds - index)
+        count = round_splits(mesh.num_elements, max_elements, refiner.children, rounds - index,
+                             refiner.options.round_growth)
         if index == rounds or estimated <= tolerance or count <= 0:
             break
         if tolerance > 0:

@@ -238,7 +238,11 @@ class RefineOptions:
     # ``tolerance``, or after ``rounds`` refinements (each grows the elements at most 5.5 times,
     # and no more than the tolerance is predicted to need: ``adaptive.answer.tolerance_splits``)
     tolerance: float = 0.01
-    rounds: int = 1  # each round grows the elements up to 5.5 times, and the seconds more (figures/accuracy_converged.md)
+    rounds: int = 1  # each round grows the elements up to round_growth times, and the seconds more (figures/accuracy_converged.md)
+    # criterion "answer": the most a round may grow the elements; fewer, larger rounds cost
+    # fewer solves, more, smaller ones find what the coarser solves could not see (a contact
+    # line's floor): ``adaptive.answer.ROUND_GROWTH``
+    round_growth: float = 5.5
 
     @property
     def enabled(self) -> bool:

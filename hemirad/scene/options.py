@@ -20,7 +20,7 @@ _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device
                 "reconstruction")
 _MESHING_KEYS = ("contacts", "intersections")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
-                "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds")
+                "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds", "round_growth")
 
 
 def read_camera(check: Checker, v) -> Camera:
@@ -153,6 +153,9 @@ def read_refine(check: Checker, v) -> RefineOptions:
                                        "a relative error in (0, 1), such as 0.01", lambda x: 0 < x < 1)
     if "rounds" in m:
         opts.rounds = check.integer(m["rounds"], "refine.rounds", "a whole number from 0 to 16", 0, 16)
+    if "round_growth" in m:
+        opts.round_growth = check.bounded(m["round_growth"], "refine.round_growth",
+                                          "a number above 1 and at most 100, such as 2.5", lambda x: 1 < x <= 100)
     if not (opts.interior or opts.shadow_edges):
         check.fail("refine.interior", "at least one of interior and shadow_edges to be true", False)
     return opts
