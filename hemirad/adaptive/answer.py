@@ -189,11 +189,12 @@ def reaching_nodes(solver: "ProgressiveSolver", split: torch.Tensor) -> list[int
 ROUND_GROWTH = 5.5
 #: With a tolerance, a round adds the elements that the error falling as 1 / elements would
 #: need to reach it (``tolerance_splits``), so a run close to its tolerance is not grown 5.5
-#: times. Measured (the interpolation estimate over rounds of 2.5 times, the three bundled
-#: scenes from x2 and x1): a first round's fell as elements^-1.1 to elements^-1.7, a second's
-#: as elements^-0.2 to elements^-0.7, a third's not at all (what is left is the solution's own
-#: error, not the shading's). So a round sized so reaches a tolerance the first round can,
-#: and stops short of one near that floor, whose rounds then run to ``rounds`` or the budget.
+#: times. Measured (the interpolation estimate, the three bundled scenes from x2 and x1): over
+#: a first round it fell as elements^-0.96 to elements^-1.4 (rounds of up to 5.5 times;
+#: elements^-1.1 to elements^-1.7 in rounds of 2.5), over later ones as elements^-0.7 or not at
+#: all (what is left is the solution's own error, not the shading's). So a round sized so
+#: about reaches a tolerance the first round can, and stops short of one near that floor,
+#: whose rounds then run to ``rounds`` or the budget.
 ERROR_ORDER = 1.0
 #: A round may split an element and then its children (``split_by_error``), where a child's
 #: score (error squared times area) is predicted as this share of its parent's: a quarter of
