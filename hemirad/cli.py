@@ -14,6 +14,7 @@ from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.patterns import PATTERN_CHOICES, describe_patterns
 from hemirad.scene.loader import MAX_SURFACE_NAME, MAX_TRIANGLES, bundled_scenes, load_scene
 from hemirad.scene.model import CRITERION_NAMES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES
+from hemirad.scene.options import MAX_CACHE_MB, MAX_ROUND_GROWTH
 from hemirad.scene.sensorfile import read_sensor_file
 
 
@@ -88,15 +89,15 @@ def _positive_float(text: str) -> float:
 
 def _megabytes(text: str) -> float:
     value = _number(text)
-    if not 0.0 <= value <= 1e7:
+    if not 0.0 <= value <= MAX_CACHE_MB:
         raise argparse.ArgumentTypeError(f"expected a number of megabytes from 0 to 1e7, got {text}")
     return value
 
 
 def _round_growth(text: str) -> float:
     value = _number(text)
-    if not 1.0 < value <= 100.0:
-        raise argparse.ArgumentTypeError(f"expected a number above 1 and at most 100, got {text}")
+    if not 1.0 < value <= MAX_ROUND_GROWTH:
+        raise argparse.ArgumentTypeError(f"expected a number above 1 and at most {MAX_ROUND_GROWTH:g}, got {text}")
     return value
 
 

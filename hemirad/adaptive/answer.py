@@ -37,6 +37,7 @@ import torch
 from hemirad.core.colour import luminance
 from hemirad.core.fastops import flatnonzero
 from hemirad.geometry.mesh import Mesh
+from hemirad.scene.model import RefineOptions
 
 #: How a display carries (T,) element values to (V,) vertex values (``element_errors``).
 VertexValues = Callable[[Mesh, torch.Tensor], torch.Tensor]
@@ -186,7 +187,7 @@ def reaching_nodes(solver: "ProgressiveSolver", split: torch.Tensor) -> list[int
 #: contact test, 41,000 elements) is within 5% at 25 of 26 points, median 0.8%, in three rounds
 #: of at most 2.5 times, and at 23 of 26, median 2.0%, in two of at most 5.5: a feature the
 #: first solve cannot see is found by the rounds after it.
-ROUND_GROWTH = 5.5
+ROUND_GROWTH = RefineOptions.round_growth
 #: With a tolerance, a round adds the elements that the error falling as 1 / elements would
 #: need to reach it (``tolerance_splits``), so a run close to its tolerance is not grown 5.5
 #: times. Measured (the interpolation estimate, the three bundled scenes from x2 and x1): over

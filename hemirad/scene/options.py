@@ -13,6 +13,9 @@ from hemirad.scene.model import (CRITERION_NAMES, RECONSTRUCTION_CHOICES, SMALL_
 MAX_EYE_LEVEL = 4
 #: Refuse scenes whose estimated initial triangle count exceeds this.
 MAX_TRIANGLES = 5_000_000
+#: The most ``solver.cache_mb`` and ``refine.round_growth`` may be (the command line's bounds too).
+MAX_CACHE_MB = 1e7
+MAX_ROUND_GROWTH = 100.0
 
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot", "sweeps",
@@ -88,7 +91,7 @@ def read_solver(check: Checker, v) -> SolverOptions:
                                           "element)", 0, MAX_EYE_LEVEL)
     if "cache_mb" in m:
         opts.cache_mb = check.bounded(m["cache_mb"], "solver.cache_mb", "a number of megabytes >= 0",
-                                      lambda x: 0 <= x <= 1e7)
+                                      lambda x: 0 <= x <= MAX_CACHE_MB)
     if "small_receivers" in m:
         opts.small_receivers = check.choice(m["small_receivers"], "solver.small_receivers", SMALL_RECEIVER_CHOICES)
     if "reconstruction" in m:
@@ -155,7 +158,8 @@ def read_refine(check: Checker, v) -> RefineOptions:
         opts.rounds = check.integer(m["rounds"], "refine.rounds", "a whole number from 0 to 16", 0, 16)
     if "round_growth" in m:
         opts.round_growth = check.bounded(m["round_growth"], "refine.round_growth",
-                                          "a number above 1 and at most 100, such as 2.5", lambda x: 1 < x <= 100)
+                                          f"a number above 1 and at most {MAX_ROUND_GROWTH:g}, such as 2.5",
+                                          lambda x: 1 < x <= MAX_ROUND_GROWTH)
     if not (opts.interior or opts.shadow_edges):
         check.fail("refine.interior", "at least one of interior and shadow_edges to be true", False)
     return opts
