@@ -82,7 +82,8 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
                              overshoot=options.overshoot, sweeps=options.sweeps, near_reach=NEAR_REACH if patches is not None else 0.0,
                              near_totals=near_totals(scene),
                              refine_shots=scene.refine.shots if refiner is not None else None, device=device,
-                             small_receivers=resolved_small_receivers(options.small_receivers, scene.refine.enabled))
+                             small_receivers=resolved_small_receivers(options.small_receivers, refiner is not None),
+                             refined_small_receivers=resolved_small_receivers(options.small_receivers, True))
 
 
 def make_patches(scene: Scene, mesh: Mesh, device: torch.device) -> PatchShooters:

@@ -322,7 +322,11 @@ def test_refinement_adds_elements_inside_patches_not_patches():
         chosen[flatnonzero(emitting)[:2]] = True
         refiner = Refiner(scene.refine, solver.emission)
         mesh, parent = refiner.split(solver.mesh, chosen)
+        # the unrefined mesh's solve corrects the lamps' small receivers, the refined ones every
+        # shooter's under a pixel (``resolved_small_receivers``)
+        assert solver.small_receivers == "lamps"
         solver.adopt_split(mesh, parent)
+        assert solver.small_receivers == "closed_form"
         mesh, second = refiner.split(mesh, mesh.level > 0)  # and their children again
         solver.adopt_split(mesh, second)
         parent = parent[second]

@@ -294,9 +294,9 @@ def test_kept_rows_are_the_corrected_ones():
 def test_the_option_is_read_checked_and_the_paper_keeps_pixels(tmp_path):
     scene = hemirad.load_scene("floating_coarse")
     assert scene.solver.small_receivers == "auto"
-    assert resolved_small_receivers("auto", refining=False) == "lamps"
-    assert resolved_small_receivers("auto", refining=True) == "closed_form"
-    assert resolved_small_receivers("pixels", refining=True) == "pixels"
+    assert resolved_small_receivers("auto", refined=False) == "lamps"
+    assert resolved_small_receivers("auto", refined=True) == "closed_form"
+    assert resolved_small_receivers("pixels", refined=True) == "pixels"
     scene.solver.paper()
     assert scene.solver.small_receivers == "pixels"
     doc = {"element_size": 0.5,

@@ -40,6 +40,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 18: the answer's first solve corrects the lamps' small receivers only;
 #: 17: a round of refinement by the answer grows the mesh up to 5.5 times, and no more than
 #: its tolerance is predicted to need;
 #: 16: only the lamps' shots correct receivers of a few pixels (reflecting shooters those
@@ -51,7 +52,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 17
+ARITHMETIC = 18
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
@@ -179,6 +180,8 @@ class ProgressiveSolver:
             (``scene.model.SMALL_RECEIVER_CHOICES``): pixels, lamps or closed_form
             (``smallreceivers``), applied to the row a shot uses and keeps (``shot_row``); the views the refiner and
             the shooter tests read keep their pixel sums.
+        refined_small_receivers: the same once ``adopt_split`` has refined the mesh (the
+            answer's rounds); None: ``small_receivers`` throughout.
     Attributes:
         mesh, reflectance, emission, areas: current, as refinement changes them (on ``device``).
         profiler: the seconds spent per phase (``PHASES``), the refiner's included.
@@ -189,7 +192,7 @@ class ProgressiveSolver:
                  patches: PatchShooters | None = None, overshoot: bool = False, near_reach: float = 0.0,
                  near_totals: str = "hemicube",
                  refine_shots: int | None = None, device: torch.device | str = "cpu",
-                 small_receivers: str = "pixels", sweeps: bool = False):
+                 small_receivers: str = "pixels", refined_small_receivers: str | None = None, sweeps: bool = False):
         self.device = torch.device(device)
         mesh = mesh.to(self.device)
         reflectance, emission = reflectance.to(self.device), emission.to(self.device)
@@ -199,10 +202,12 @@ class ProgressiveSolver:
         self.emitted_power = (emission * self.areas[:, None]).sum(0)  # (3,)
         self.profiler = Profiler(PHASES)
         self.renderer = HemicubeRenderer(mesh, resolution, cull, self.device, self.profiler)
-        if small_receivers not in SMALL_RECEIVER_CHOICES:
-            raise ValueError(f"small_receivers must be one of {', '.join(SMALL_RECEIVER_CHOICES)}, "
-                             f"not {small_receivers!r}")
-        self.small_receivers = small_receivers
+        refined_small_receivers = small_receivers if refined_small_receivers is None else refined_small_receivers
+        for choice in (small_receivers, refined_small_receivers):
+            if choice not in SMALL_RECEIVER_CHOICES:
+                raise ValueError(f"small_receivers must be one of {', '.join(SMALL_RECEIVER_CHOICES)}, "
+                                 f"not {choice!r}")
+        self.small_receivers, self.refined_small_receivers = small_receivers, refined_small_receivers
         self.refiner = refiner
         self.refine_shots = refine_shots
         self.rows = FormFactorRows(cache_bytes)
@@ -313,6 +318,7 @@ class ProgressiveSolver:
         self.reflectance, self.emission, self.state.radiosity, self.state.unshot = (
             rows.inherit(parent) for rows in self._per_element)
         self.areas = mesh.areas
+        self.small_receivers = self.refined_small_receivers
         self.renderer.set_geometry(mesh)
         self._forget_kept_light()
         if self.patches is not None:
@@ -661,7 +667,8 @@ class ProgressiveSolver:
         Keys: ``mesh`` (``Mesh.state_dict``; refinement changes it), ``reflectance``,
         ``emission``, ``radiosity``, ``unshot`` (T, 3) float64; ``absorbed``, ``escaped``,
         ``emitted_power`` (3,) float64; ``shots``; ``refiner`` and ``patches`` (their own
-        ``state_dict``, or None) and ``timings``. ``emitted_power`` is kept rather than recomputed because the
+        ``state_dict``, or None), ``small_receivers`` (the choice the next shot makes) and
+        ``timings``. ``emitted_power`` is kept rather than recomputed because the
         refined mesh's areas sum to it only to rounding, and the stopping rule divides by it.
         """
         s = self.state
@@ -671,7 +678,7 @@ class ProgressiveSolver:
         return {"mesh": self.mesh.state_dict(), **{k: v.cpu().clone() for k, v in saved.items()}, "shots": s.shots,
                 "sweeps": self.sweep_count, "refiner": self.refiner.state_dict() if self.refiner is not None else None,
                 "patches": self.patches.state_dict() if self.patches is not None else None,
-                "timings": self.timings()}
+                "small_receivers": self.small_receivers, "timings": self.timings()}
 
     def load_state_dict(self, state: dict, patches_for: Callable[[], PatchShooters] | None = None) -> None:
         """Continue from ``state_dict()``'s output: the next shot is the one that would have followed.
@@ -703,6 +710,10 @@ class ProgressiveSolver:
                                 state["absorbed"], state["escaped"]))
         self.emitted_power = state["emitted_power"].to(torch.float64).to(self.device)
         self.sweep_count = int(state.get("sweeps", 0))
+        small_receivers = state.get("small_receivers", self.small_receivers)  # older states: as made
+        if small_receivers not in (self.small_receivers, self.refined_small_receivers):
+            raise ValueError(f"the state was saved with small_receivers {small_receivers!r}")
+        self.small_receivers = small_receivers
         if (state.get("patches") is None) != (self.patches is None):
             raise ValueError("the state was saved with patches " + ("off" if state.get("patches") is None else "on"))
         if self.refiner is not None:
