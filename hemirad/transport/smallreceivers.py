@@ -80,6 +80,15 @@ def sample_barycentrics(level: int) -> torch.Tensor:
     return torch.cat([ab, 1.0 - ab.sum(1, keepdim=True)], dim=1)
 
 
+@cached_per_device
+def _sample_table(max_level: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``sample_barycentrics`` of levels 1 to ``max_level`` one after another, (S, 3), and
+    (max_level + 1,) int64 where each level's begin (indexed by the level)."""
+    levels = range(1, max_level + 1)
+    begin = torch.tensor([0, 0, *(level * level for level in levels)]).cumsum(0)[:max_level + 1]
+    return torch.cat([sample_barycentrics(level) for level in levels]), begin
+
+
 def sample_levels(footprint: torch.Tensor, max_level: int = SAMPLE_LEVEL) -> torch.Tensor:
     """(n,) int64 the level of each receiver's samples for its (n,) ``footprint`` in pixels:
     the least with level^2 >= footprint (a sample a pixel: what a pixel sees is one answer
@@ -180,13 +189,14 @@ def visible_form_factors(views: Sequence[HemicubeView], view_of: torch.Tensor, r
         levels: (n,) int64 each one's samples: the level^2 points of ``sample_barycentrics``.
     """
     n, device = len(rows), corners.device
-    points, position = [], []  # per level: the samples (M, 3) and the receiver (M,) of each
-    for level in torch.unique(levels).tolist():
-        group = flatnonzero(levels == level)
-        bary = sample_barycentrics(level, device)  # (S, 3)
-        points.append(torch.einsum("sk,nkc->nsc", bary, corners.index_select(0, group)).reshape(-1, 3))
-        position.append(group.repeat_interleave(len(bary)))
-    points, position = torch.cat(points), torch.cat(position)  # (N, 3), (N,)
+    # every receiver's level^2 samples in turn: sample i of receiver p is row begin[level_p] + i
+    # of the table (one gather for all levels)
+    table, begin = _sample_table(int(levels.max()), device)
+    counts = levels * levels
+    position = torch.repeat_interleave(torch.arange(n, device=device), counts)  # (N,) the receiver of each
+    first = counts.cumsum(0) - counts  # (n,) where each receiver's samples start
+    index = (begin.index_select(0, levels) - first).index_select(0, position) + torch.arange(len(position), device=device)
+    points = torch.einsum("nk,nkc->nc", table.index_select(0, index), corners.index_select(0, position))  # (N, 3)
     owner = rows.index_select(0, position)
     if len(views) == 1:
         weight, visible = _sample_weights(views[0], points, owner)
