@@ -85,7 +85,8 @@ def _sample_table(max_level: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The ``sample_barycentrics`` of levels 1 to ``max_level`` one after another, (S, 3), and
     (max_level + 1,) int64 where each level's begin (indexed by the level)."""
     levels = range(1, max_level + 1)
-    begin = torch.tensor([0, 0, *(level * level for level in levels)]).cumsum(0)[:max_level + 1]
+    sizes = [level * level for level in levels]
+    begin = torch.tensor([0, 0, *sizes[:-1]]).cumsum(0)  # level 1 begins at 0, level k after k-1's
     return torch.cat([sample_barycentrics(level) for level in levels]), begin
 
 
@@ -193,7 +194,7 @@ def visible_form_factors(views: Sequence[HemicubeView], view_of: torch.Tensor, r
     # of the table (one gather for all levels)
     table, begin = _sample_table(int(levels.max()), device)
     counts = levels * levels
-    position = torch.repeat_interleave(torch.arange(n, device=device), counts)  # (N,) the receiver of each
+    position = torch.repeat_interleave(counts)  # (N,) the receiver of each
     first = counts.cumsum(0) - counts  # (n,) where each receiver's samples start
     index = (begin.index_select(0, levels) - first).index_select(0, position) + torch.arange(len(position), device=device)
     points = torch.einsum("nk,nkc->nc", table.index_select(0, index), corners.index_select(0, position))  # (N, 3)
