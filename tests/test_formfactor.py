@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from hemirad.geometry.analytic import (parallel_rectangles, perpendicular_rectangles, point_to_polygon,
-                                      point_to_triangles, triangle_to_triangles)
+                                      point_to_triangles, small_triangle_factors, triangle_to_triangles)
 from hemirad.geometry.mesh import Mesh
 from hemirad.transport.formfactor import delta_form_factors, raw_delta_form_factors
 from hemirad.transport.renderer import HemicubeRenderer
@@ -213,3 +213,39 @@ def test_triangle_to_triangles_clips_what_faces_away_and_matches_sampling():
     assert int((sampled(sources, receivers) > 1e-3).sum()) > 30
     beside = sources + (sources[:, 1] - sources[:, 0])[:, None]
     assert float(triangle_to_triangles(sources, beside).abs().max()) == 0.0
+
+
+def test_small_receivers_factors_by_reciprocity_match_their_definition():
+    # Receivers of about 1 cm radius at the foot of a 1 m wall triangle (on the floor) and
+    # facing it (parallel), 2 to 200 of their radii away: A_s F(s -> r) is the integral over
+    # the receiver of Lambert's factor to the source, here averaged over 24^2 of its points.
+    # (The 4-point contour integral reads the nearest 6% low.)
+    from hemirad.transport.smallreceivers import sample_barycentrics
+
+    wall = torch.tensor([[0, 0, 0], [0, 0, 1], [1, 0, 0]], dtype=torch.float64)  # faces +y
+    radius = 0.01
+    apart = torch.tensor([2, 4, 8, 16, 32, 64, 200], dtype=torch.float64)
+
+    def placed(corners, where):  # (3, 3) a shape of about ``radius``, centred at each of (m, 3)
+        shape = torch.tensor(corners, dtype=torch.float64) * radius
+        return shape - shape.mean(0) + where[:, None]
+
+    away = apart * radius + radius
+    on_floor = placed([[0, 0, 0], [1.2, 0, 0], [0, 1.2, 0]],  # faces +z
+                      torch.stack([torch.full_like(away, 0.3), away, torch.zeros_like(away)], 1))
+    facing = placed([[0, 0, 0], [1.2, 0, 0], [0, 0, 1.2]],  # faces -y
+                    torch.stack([torch.full_like(away, 0.3), away, torch.full_like(away, 0.3)], 1))
+
+    def area(t):
+        return 0.5 * torch.linalg.vector_norm(torch.linalg.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), dim=1)
+    for receivers in (on_floor, facing):
+        normals = torch.nn.functional.normalize(
+            torch.linalg.cross(receivers[:, 1] - receivers[:, 0], receivers[:, 2] - receivers[:, 0]), dim=1)
+        points = torch.einsum("pc,mcd->mpd", sample_barycentrics(24), receivers)  # (m, P, 3)
+        sources = wall[None].expand(len(receivers), 3, 3)
+        exact = torch.stack([point_to_triangles(points[i][:, None], normals[i], sources[:1].expand(len(points[i]), 3, 3)
+                                                ).mean() for i in range(len(receivers))]) * area(receivers) / area(sources)
+        assert bool((exact > 1e-8).all())
+        torch.testing.assert_close(small_triangle_factors(sources, receivers, 3), exact, rtol=1e-5, atol=0)
+        far = apart >= 32
+        torch.testing.assert_close(small_triangle_factors(sources[far], receivers[far], 1), exact[far], rtol=5e-4, atol=0)

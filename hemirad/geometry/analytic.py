@@ -99,28 +99,36 @@ def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: tor
     Returns:
         (T,) form factors, >= 0.
     """
-    def along_normal(x: torch.Tensor) -> torch.Tensor:  # (T, m, 3) -> (T, m)
-        return x @ normal if normal.dim() == 1 else (x * normal).sum(-1)
-
-    d = along_normal(triangles - point)  # (T, 3) heights above the tangent plane
-    T = len(triangles)
-    # A triangle wholly above needs no clipping: its slots as the clipping would leave them
-    # (the corners, then the unused cuts, each its edge's start: they are masked out below).
-    polygon = triangles[:, [0, 1, 2, 0, 1, 2]]
-    count = torch.full((T, 1), 3, dtype=torch.int64, device=triangles.device)
+    d = _along(triangles - point, normal)  # (T, 3) heights above the tangent plane
+    # most triangles lie wholly above: their three edges as they are (a third of the work of
+    # the six slots clipping leaves)
+    out = _lambert_sum(point, normal, triangles, triangles[:, [1, 2, 0]])
     cut = torch.nonzero((d <= 0).any(1)).reshape(-1)
-    if len(cut):
-        clipped, clipped_count = _clip_to_positive(triangles.index_select(0, cut), d.index_select(0, cut))
-        polygon, count = polygon.index_copy(0, cut, clipped), count.index_copy(0, cut, clipped_count)
-    slot = torch.arange(6, device=triangles.device).expand(T, 6)
-    following = torch.gather(polygon, 1, ((slot + 1) % count.clamp(min=1))[..., None].expand(T, 6, 3))
+    if len(cut) == 0:
+        return out
+    point, normal = (x.index_select(0, cut) if x.dim() > 1 else x for x in (point, normal))
+    polygon, count = _clip_to_positive(triangles.index_select(0, cut), d.index_select(0, cut))
+    slot = torch.arange(6, device=triangles.device).expand(len(cut), 6)
+    following = torch.gather(polygon, 1, ((slot + 1) % count.clamp(min=1))[..., None].expand(len(cut), 6, 3))
+    return out.index_copy(0, cut, _lambert_sum(point, normal, polygon, following, slot < count))
+
+
+def _along(x: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """(T, m) the (T, m, 3) vectors ``x`` along ``normal``, (3,) or (T, 1, 3)."""
+    return x @ normal if normal.dim() == 1 else (x * normal).sum(-1)
+
+
+def _lambert_sum(point: torch.Tensor, normal: torch.Tensor, polygon: torch.Tensor, following: torch.Tensor,
+                 edge: torch.Tensor | None = None) -> torch.Tensor:
+    """(T,) Lambert's formula from ``point`` along ``normal`` (as ``point_to_triangles``
+    takes them) summed over the edges from ``polygon`` to ``following`` (T, m, 3), those of
+    ``edge`` (T, m) only, or all."""
     R, R_next = polygon - point, following - point
     cross = torch.linalg.cross(R, R_next)
     cross_norm = cross.norm(dim=-1)
     theta = torch.atan2(cross_norm, (R * R_next).sum(-1))
-    edge = (slot < count) & (cross_norm > 0)
-    term = torch.where(edge, theta * along_normal(cross) / torch.where(edge, cross_norm, torch.ones_like(cross_norm)),
-                       torch.zeros_like(theta))
+    edge = cross_norm > 0 if edge is None else edge & (cross_norm > 0)
+    term = torch.where(edge, theta * _along(cross, normal) / torch.where(edge, cross_norm, 1.0), 0.0)
     return (term.sum(1) / (2 * math.pi)).abs()
 
 
@@ -247,3 +255,39 @@ def triangle_to_triangles(sources: torch.Tensor, receivers: torch.Tensor, points
         inner = _log_distance_to_segment(X, Y, Z, start_r, direction_r, length_r)
         total.index_add_(0, pair[start:start + step], (inner * ds * w).sum(1) * along[start:start + step])
     return (total / (2.0 * math.pi * area_s.clamp(min=1e-300))).clamp(min=0.0)
+
+
+def small_triangle_factors(sources: torch.Tensor, receivers: torch.Tensor, points: int) -> torch.Tensor:
+    """Unoccluded area-to-area form factors F(s -> r) between pairs of triangles whose
+    receiver is small beside the source and apart from it, by reciprocity: A_r / A_s times
+    the mean of Lambert's factor (``point_to_triangles``) to the source from ``points`` of
+    the receiver, 1 (its centroid) or 3 (its edges' midpoints: exact where that factor is
+    quadratic over the receiver). Each receiver must lie wholly in front of its source's
+    plane (its points see the source's front; the source is clipped to each point's).
+
+    For a receiver of a hundredth of the source's side the contour integral
+    (``triangle_to_triangles``) is a small difference of large terms, which its Gauss rule
+    reads a few per cent off; these points do not. Measured on a refined floor's elements
+    beside their wall sources (receiver radius at most a tenth of the source's side), against
+    24-point contour integrals: 3 points 2 to 32 receiver radii apart at most 0.17% off
+    (the 4-point contour up to 9.2%), the centroid beyond 32 radii at most 1.0%, 0.08% at
+    the 99th percentile (the contour 0.7% and 0.15%), in a third of the contour's time.
+
+    Args:
+        sources, receivers: (m, 3, 3) the pairs' corners, each wound about its front's normal.
+        points: 1 or 3.
+    Returns:
+        (m,) F(s -> r) >= 0.
+    """
+    if points not in (1, 3):
+        raise ValueError(f"points must be 1 or 3, not {points}")
+    m = len(sources)
+    cross_r = torch.linalg.cross(receivers[:, 1] - receivers[:, 0], receivers[:, 2] - receivers[:, 0])
+    double_area_r = torch.linalg.vector_norm(cross_r, dim=1)
+    normal_r = cross_r / double_area_r.clamp(min=1e-300)[:, None]
+    double_area_s = torch.linalg.vector_norm(
+        torch.linalg.cross(sources[:, 1] - sources[:, 0], sources[:, 2] - sources[:, 0]), dim=1)
+    at = receivers.mean(1, keepdim=True) if points == 1 else 0.5 * (receivers + receivers[:, [1, 2, 0]])  # (m, n, 3)
+    lambert = point_to_triangles(at.reshape(-1, 1, 3), normal_r.repeat_interleave(points, 0)[:, None],
+                                 sources.repeat_interleave(points, 0)).reshape(m, points).mean(1)
+    return lambert * double_area_r / double_area_s.clamp(min=1e-300)

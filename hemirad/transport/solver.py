@@ -40,6 +40,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 19: near fields take a small receiver's factor from its points (by reciprocity), and
+#: Lambert's factor to a triangle wholly above its point sums its three edges alone;
 #: 18: the answer's first solve corrects the lamps' small receivers only;
 #: 17: a round of refinement by the answer grows the mesh up to 5.5 times, and no more than
 #: its tolerance is predicted to need;
@@ -52,7 +54,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 18
+ARITHMETIC = 19
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
