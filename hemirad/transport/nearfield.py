@@ -16,8 +16,8 @@ receiver's visibility from G:
 
 - the factor is the triangles' unoccluded area-to-area form factor
   (``analytic.triangle_to_triangles``, a contour integral; for a receiver far smaller than
-  the source and apart from it, ``analytic.small_triangle_factors``, by reciprocity from
-  points of the receiver) for pairs closer than ``CONTOUR_GAP`` source sides; beyond, Lambert's factor from G times the ratio of the
+  the source, ``analytic.small_triangle_factors``, by reciprocity from points of the
+  receiver) for pairs closer than ``CONTOUR_GAP`` source sides; beyond, Lambert's factor from G times the ratio of the
   point-to-point kernels cos cos / r^2 from the source's centroid and from G (Lambert's from
   the source's centroid, to second order in the receiver's size, without its cost). A
   centroid's Lambert factor alone, as an earlier version used, leaves the 7% above: the
@@ -68,14 +68,16 @@ CONTOUR_GAP = 1.0
 #: Gauss points along each piece of a source edge (``triangle_to_triangles``: at most about 1%
 #: of the factor for triangles that touch, 0.01% for those apart by half a side).
 GAUSS_POINTS = 4
-#: Close pairs whose receiver's radius is at most this share of the source's side, wholly in
-#: front of the source's plane, get their factor from points of the receiver
-#: (``analytic.small_triangle_factors``): from its edges' midpoints where it lies at least
-#: ``MIDPOINTS_APART`` receiver radii from the source (the gap between their bounding
-#: spheres), from its centroid at ``CENTROID_APART``. A refined mesh's receivers beside a
-#: patch's sources are a hundredth of their side, where the contour integral loses its digits.
+#: Close pairs whose receiver's radius is at most this share of the source's side, in front
+#: of the source's plane (touching it at most), get their factor from points of the receiver
+#: (``analytic.small_triangle_factors``): three, or its centroid where it lies at least
+#: ``CENTROID_APART`` receiver radii from the source (the gap between their bounding
+#: spheres). A refined mesh's receivers beside a patch's sources are a hundredth of their
+#: side, where the contour integral loses its digits.
 SMALL_RECEIVER = 0.1
-MIDPOINTS_APART, CENTROID_APART = 2.0, 32.0
+CENTROID_APART = 32.0
+# A receiver's corner this share of the source's side off its plane lies on it (rounding).
+_ON_PLANE = 1e-9
 #: Contour integrals done between two pauses of ``near_field_steps`` (about 4 ms of work).
 CONTOUR_CHUNK = 1024
 #: Source-receiver pairs that ``near_field_steps`` takes in one pass, at most (a shooter with
@@ -177,20 +179,21 @@ def area_factor_steps(sources: torch.Tensor, receivers: torch.Tensor, receiver_n
     out = (by_receiver(from_point / kernel_g) * kernel).reshape(-1)
     side, steady = by_source(side).expand(d2.shape).reshape(-1), by_receiver(steady).expand(d2.shape).reshape(-1)
     close = flatnonzero((gap < CONTOUR_GAP * side) | ~steady)
-    # a receiver far smaller than its source and apart from it, wholly in front of the
-    # source's plane: by reciprocity from points of the receiver
+    # a receiver far smaller than its source, in front of the source's plane (touching it at
+    # most): by reciprocity from points of the receiver
     close_source, close_receiver = source.index_select(0, close), receiver.index_select(0, close)
-    source_normals = torch.linalg.cross(sources[:, 1] - sources[:, 0], sources[:, 2] - sources[:, 0])
+    source_normals = torch.nn.functional.normalize(
+        torch.linalg.cross(sources[:, 1] - sources[:, 0], sources[:, 2] - sources[:, 0]), dim=1)
     heights = ((receivers.index_select(0, close_receiver) - sources.index_select(0, close_source)[:, :1])
-               * source_normals.index_select(0, close_source)[:, None]).sum(-1)  # (c, 3) (unnormalised)
-    apart = gap.index_select(0, close) / receiver_radius.index_select(0, close_receiver).clamp(min=1e-300)
-    small = (heights > 0).all(1) & (receiver_radius.index_select(0, close_receiver)
-                                     <= SMALL_RECEIVER * side.index_select(0, close))
-    by_centroid = small & (apart >= CENTROID_APART)
-    by_midpoints = small & (apart >= MIDPOINTS_APART) & ~by_centroid
+               * source_normals.index_select(0, close_source)[:, None]).sum(-1)  # (c, 3)
+    close_radius, close_side = receiver_radius.index_select(0, close_receiver), side.index_select(0, close)
+    on_plane = _ON_PLANE * close_side[:, None]
+    small = (heights >= -on_plane).all(1) & (heights > on_plane).any(1) & (close_radius <= SMALL_RECEIVER * close_side)
+    by_centroid = small & (gap.index_select(0, close) >= CENTROID_APART * close_radius)
+    by_points = small & ~by_centroid
     for pairs, factors, chunk_size in (
-            (close[~(by_centroid | by_midpoints)], lambda s, r: triangle_to_triangles(s, r, GAUSS_POINTS), CONTOUR_CHUNK),
-            (close[by_midpoints], lambda s, r: small_triangle_factors(s, r, 3), CONTOUR_CHUNK),
+            (close[~small], lambda s, r: triangle_to_triangles(s, r, GAUSS_POINTS), CONTOUR_CHUNK),
+            (close[by_points], lambda s, r: small_triangle_factors(s, r, 3), CONTOUR_CHUNK),
             (close[by_centroid], lambda s, r: small_triangle_factors(s, r, 1), 3 * CONTOUR_CHUNK)):
         for chunk in pairs.split(chunk_size) if len(pairs) else ():  # (an empty tensor splits into one empty part)
             yield
