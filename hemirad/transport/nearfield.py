@@ -17,9 +17,10 @@ receiver's visibility from G:
 - the factor is the triangles' unoccluded area-to-area form factor
   (``analytic.triangle_to_triangles``, a contour integral; for a receiver far smaller than
   the source, ``analytic.small_triangle_factors``, by reciprocity from points of the
-  receiver) for pairs closer than ``CONTOUR_GAP`` source sides; beyond, Lambert's factor from G times the ratio of the
-  point-to-point kernels cos cos / r^2 from the source's centroid and from G (Lambert's from
-  the source's centroid, to second order in the receiver's size, without its cost). A
+  receiver) for pairs closer than ``CONTOUR_GAP`` source sides; beyond, Lambert's factor
+  from G times the ratio of the point-to-point kernels cos cos / r^2 from the source's
+  centroid and from G (Lambert's from the source's centroid, to second order in the
+  receiver's size, without its cost). A
   centroid's Lambert factor alone, as an earlier version used, leaves the 7% above: the
   error is in the pairs that touch.
 - the visibility is 1 where all ``VISIBILITY_LEVEL``^2 samples of the receiver are visible
