@@ -20,9 +20,8 @@ receiver's visibility from G:
   receiver) for pairs closer than ``CONTOUR_GAP`` source sides; beyond, Lambert's factor
   from G times the ratio of the point-to-point kernels cos cos / r^2 from the source's
   centroid and from G (Lambert's from the source's centroid, to second order in the
-  receiver's size, without its cost). A
-  centroid's Lambert factor alone, as an earlier version used, leaves the 7% above: the
-  error is in the pairs that touch.
+  receiver's size, without its cost). A centroid's Lambert factor alone, as an earlier
+  version used, leaves the 7% above: the error is in the pairs that touch.
 - the visibility is 1 where all ``VISIBILITY_LEVEL``^2 samples of the receiver are visible
   in G's hemicube (the shadow-map test of ``smallreceivers``), else the hemicube's factor
   over Lambert's from G, at most 1. The pixels' ratio alone carries their luck (a few per
