@@ -39,7 +39,7 @@ from hemirad.core.fastops import flatnonzero, row_sums
 from hemirad.geometry.analytic import point_to_triangles
 from hemirad.transport.formfactor import sum_by_index
 from hemirad.transport.hemicube import FACES, face_viewports
-from hemirad.transport.view import HemicubeView
+from hemirad.transport.view import HemicubeView, pixel_directions
 
 #: The receivers whose unoccluded footprint on the hemicube is estimated below this many
 #: pixels get their factor from samples. Measured (a right triangle, legs along the pixel
@@ -181,11 +181,13 @@ def visible_form_factors(views: Sequence[HemicubeView], view_of: torch.Tensor, r
     level^2.
 
     The midpoint rule's relative error falls like the square of a sub-triangle's size over
-    its distance (``NEAR``).
+    its distance (``NEAR``). Every view's samples go through one pass (a reflecting
+    shooter's few receivers under a pixel cost the torch calls, not the arithmetic), and a
+    receiver's numbers do not depend on which others share the pass.
 
     Args:
-        views: the hemicubes, of one mesh; view_of: (n,) the one each receiver is seen from
-            (a shooter's near receivers, many shooters at once).
+        views: the hemicubes, of one mesh; view_of: (n,) the one each receiver is seen from,
+            non-decreasing (a sweep group's shooters, or a shooter's near receivers).
         rows: (n,) front-facing receivers; corners: (n, 3, 3) theirs; areas: (n,) theirs.
         levels: (n,) int64 each one's samples: the level^2 points of ``sample_barycentrics``.
     """
@@ -198,48 +200,74 @@ def visible_form_factors(views: Sequence[HemicubeView], view_of: torch.Tensor, r
     first = counts.cumsum(0) - counts  # (n,) where each receiver's samples start
     index = (begin.index_select(0, levels) - first).index_select(0, position) + torch.arange(len(position), device=device)
     points = torch.einsum("nk,nkc->nc", table.index_select(0, index), corners.index_select(0, position))  # (N, 3)
-    owner = rows.index_select(0, position)
-    if len(views) == 1:
-        weight, visible = _sample_weights(views[0], points, owner)
-    else:  # each view's samples together
-        sample_view = view_of.index_select(0, position)
-        order = torch.argsort(sample_view, stable=True)
-        parts = order.split(torch.bincount(sample_view, minlength=len(views)).tolist())
-        weight, visible = points.new_empty(len(points)), points.new_empty(len(points))
-        for view, part in zip(views, parts):
-            if len(part):
-                w, v = _sample_weights(view, points.index_select(0, part), owner.index_select(0, part))
-                weight.index_copy_(0, part, w)
-                visible.index_copy_(0, part, v)
+    eyes = torch.stack([view.eye for view in views]).index_select(0, view_of)  # (n, 3)
+    weight, visible = _sample_weights(views, view_of.index_select(0, position), points, rows.index_select(0, position))
     first = views[0]
-    eyes = torch.stack([view.eye for view in views]).index_select(0, view_of)
     height = -row_sums((first.points.index_select(0, rows) - eyes) * first.normals.index_select(0, rows))
     scale = height * areas / (math.pi * levels * levels)  # h_j A_j / (pi S)
     return sum_by_index(position, visible, n) * scale, sum_by_index(position, weight, n) * scale
 
 
-def _sample_weights(view: HemicubeView, points: torch.Tensor, owner: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _sample_weights(views: Sequence[HemicubeView], view_of: torch.Tensor, points: torch.Tensor, owner: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
     """(N,) the kernel z / r^4 of each sample (N, 3) of a receiver ``owner`` (N,) seen from the
-    eye of ``view``, and (N,) the same with 0 where the shadow map hides it."""
-    ray = points - view.eye  # (N, 3) from the eye to the point
-    local = ray @ view.frame.T
-    pixels = atlas_pixels(local, view.resolution)
-    seen = view.element.index_select(0, pixels)
+    eye of its view ``views[view_of]`` (N,, non-decreasing), and (N,) the same with 0 where
+    that view, as a shadow map, hides it. Per sample, in the same arithmetic whichever
+    views share the pass."""
+    first = views[0]
+    eyes = torch.stack([view.eye for view in views]).index_select(0, view_of)  # (N, 3)
+    frames = torch.stack([view.frame for view in views]).index_select(0, view_of)  # (N, 3, 3)
+    ray = points - eyes  # (N, 3) from the eye to the point
+    local = row_sums(ray[:, None, :] * frames)  # (N, 3) along t, b and n
+    pixels = atlas_pixels(local, first.resolution)
+    # what each sample's pixel sees, view by view (the atlases stay where they are)
+    parts = pixels.split(torch.bincount(view_of, minlength=len(views)).tolist())
+    seen = torch.cat([view.element.index_select(0, part) for view, part in zip(views, parts)])
     other = flatnonzero((seen >= 0) & (seen != owner))  # samples whose pixel sees another element
     r2 = row_sums(ray * ray)
     weight = local[:, 2].clamp(min=0.0) / (r2 * r2)
     if len(other) == 0:
         return weight, weight
     k = seen.index_select(0, other)
-    toward = row_sums(view.normals.index_select(0, k) * ray.index_select(0, other))  # n_k . ray
-    d_k = view.distance.index_select(0, k)  # the ray meets k's plane at d_k / toward of its length
+    eye = eyes.index_select(0, other)
+    ray = ray.index_select(0, other)
+    normal_k = first.normals.index_select(0, k)
+    toward = row_sums(normal_k * ray)  # n_k . ray
+    d_k = row_sums((first.points.index_select(0, k) - eye) * normal_k)  # the ray meets k's plane at d_k / toward of its length
     crosses = (d_k * toward > 0) & (d_k.abs() < (1.0 - _TOLERANCE) * toward.abs())
     j = owner.index_select(0, other)
-    d_j = view.distance.index_select(0, j)  # < 0: the eye is in front of j
-    seen_at = view.hits(pixels.index_select(0, other)) - view.eye[:, None]  # (3, M) what the pixel sees
-    in_front = (view.normals_of(j) * seen_at).sum(0) - d_j > _TOLERANCE * d_j.abs()
+    normal_j = first.normals.index_select(0, j)
+    d_j = row_sums((first.points.index_select(0, j) - eye) * normal_j)  # < 0: the eye is in front of j
+    # where the pixel's own ray (its centre's direction, in the world) meets k's plane,
+    # along n_j from the eye
+    direction = pixel_directions(first.resolution, points.device).index_select(1, pixels.index_select(0, other)).T
+    direction = row_sums(direction[:, :, None] * frames.index_select(0, other))  # (M, 3) in the world
+    seen_at = d_k / row_sums(direction * normal_k) * row_sums(direction * normal_j)
+    in_front = seen_at - d_j > _TOLERANCE * d_j.abs()
     hidden = other.index_select(0, flatnonzero(crosses & in_front))
     return weight, weight.index_fill(0, hidden, 0.0)
+
+
+def small_receiver_rows(views: Sequence[HemicubeView], corners: torch.Tensor, areas: torch.Tensor,
+                        max_pixels: Sequence[float], max_level: int = SAMPLE_LEVEL) -> list[torch.Tensor]:
+    """``small_receiver_form_factors`` of each of ``views`` (of one mesh), each with its own
+    ``max_pixels``: the rows F_sj (T,) of a sweep group's shooters, made in one pass; each
+    the same as made alone."""
+    found = [small_receivers(view, corners, areas, limit) for view, limit in zip(views, max_pixels)]
+    rows = torch.cat([r for r, _ in found])
+    if len(rows) == 0:
+        return [view.form_factors for view in views]
+    counts = [len(r) for r, _ in found]
+    view_of = torch.repeat_interleave(torch.arange(len(views), device=rows.device),
+                                      torch.tensor(counts, device=rows.device))
+    sampled = _visible_part_factors(views, view_of, rows, torch.cat([f for _, f in found]), corners, areas, max_level)
+    out = []
+    for view, part, mine in zip(views, rows.split(counts), sampled.split(counts)):
+        pixel_sums = view.form_factors
+        F = pixel_sums.index_copy(0, part, mine)
+        hemicube_total, total = pixel_sums.sum(), F.sum()
+        out.append(pixel_sums if len(part) == 0 or float(total) <= 0.0 else F * (hemicube_total / total))
+    return out
 
 
 def small_receiver_form_factors(view: HemicubeView, corners: torch.Tensor, areas: torch.Tensor,
@@ -255,27 +283,33 @@ def small_receiver_form_factors(view: HemicubeView, corners: torch.Tensor, areas
         among: (T,) bool, optional: correct only these receivers, and leave the row unscaled
             (the caller scales what it needs; ``adaptive.answer`` per split element).
     """
-    pixel_sums = view.form_factors
+    if among is None:
+        return small_receiver_rows([view], corners, areas, [max_pixels], max_level)[0]
     rows, footprint = small_receivers(view, corners, areas, max_pixels, among)
     if len(rows) == 0:
-        return pixel_sums
+        return view.form_factors
+    sampled = _visible_part_factors([view], torch.zeros_like(rows), rows, footprint, corners, areas, max_level)
+    return view.form_factors.index_copy(0, rows, sampled)
+
+
+def _visible_part_factors(views: Sequence[HemicubeView], view_of: torch.Tensor, rows: torch.Tensor,
+                          footprint: torch.Tensor, corners: torch.Tensor, areas: torch.Tensor,
+                          max_level: int) -> torch.Tensor:
+    """(n,) the factor from its view's eye to the visible part of each receiver ``rows`` (n,)
+    of ``footprint`` (n,) pixels (``view_of`` as ``visible_form_factors`` takes it): the
+    sampled sum, or near the eye, where that sum is too coarse, Lambert's closed form times
+    the visible share of the sum."""
     levels = sample_levels(footprint, max_level)
     row_corners = corners.index_select(0, rows)
-    sampled, unoccluded = visible_form_factors([view], torch.zeros_like(rows), rows, row_corners,
-                                               areas.index_select(0, rows), levels)
-    # Near the eye the sum is too coarse: there the closed form, times the visible share of the sum.
+    sampled, unoccluded = visible_form_factors(views, view_of, rows, row_corners, areas.index_select(0, rows), levels)
+    eyes = torch.stack([view.eye for view in views]).index_select(0, view_of)  # (n, 3)
     edges = row_corners - row_corners.roll(1, dims=1)
     size = edges.norm(dim=2).amax(1) / levels  # (n,) a sub-triangle's longest edge
-    near = flatnonzero(size > NEAR * (view.points.index_select(0, rows) - view.eye).norm(dim=1))
-    if len(near):
-        closed = point_to_triangles(view.eye, view.frame[2], row_corners.index_select(0, near))
-        total = unoccluded.index_select(0, near)
-        share = torch.where(total > 0, sampled.index_select(0, near) / torch.where(total > 0, total, 1.0), 0.0)
-        sampled = sampled.index_copy(0, near, closed * share)
-    F = pixel_sums.index_copy(0, rows, sampled)
-    if among is not None:
-        return F
-    hemicube_total, total = pixel_sums.sum(), F.sum()
-    if float(total) <= 0.0:
-        return pixel_sums
-    return F * (hemicube_total / total)
+    near = flatnonzero(size > NEAR * (views[0].points.index_select(0, rows) - eyes).norm(dim=1))
+    if len(near) == 0:
+        return sampled
+    normals = torch.stack([view.frame[2] for view in views]).index_select(0, view_of.index_select(0, near))
+    closed = point_to_triangles(eyes.index_select(0, near)[:, None], normals[:, None], row_corners.index_select(0, near))
+    total = unoccluded.index_select(0, near)
+    share = torch.where(total > 0, sampled.index_select(0, near) / torch.where(total > 0, total, 1.0), 0.0)
+    return sampled.index_copy(0, near, closed * share)

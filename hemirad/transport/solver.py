@@ -29,7 +29,7 @@ from hemirad.transport.nearfield import (NearReceivers, NearShooter, incident_po
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
 from hemirad.transport.shooters import PatchShooters, eye_points
-from hemirad.transport.smallreceivers import BOUNCE_MAX_PIXELS, MAX_PIXELS, small_receiver_form_factors
+from hemirad.transport.smallreceivers import BOUNCE_MAX_PIXELS, MAX_PIXELS, small_receiver_form_factors, small_receiver_rows
 from hemirad.transport.sweep import SweepTransport
 from hemirad.transport.view import HemicubeView
 
@@ -54,7 +54,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 19
+ARITHMETIC = 20
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
@@ -427,8 +427,9 @@ class ProgressiveSolver:
             nodes = patches.cut(patch, self.render_and_keep, self.mesh.corners)
             if making is not None and self._step(making):
                 making = None
-            for node in nodes:
-                new[node] = (self.form_factors_of(node), self._views.pop(node, None))
+            for node in nodes:  # rows not kept are made with the group's (``_group_rows``)
+                F, view = self.rows.get(node, self.mesh.num_elements), self._views.pop(node, None)
+                new[node] = (F, self.render(node) if F is None and view is None else view)
             # the views of nodes that split into their children: each holds a hemicube's pixels
             self._views.clear()
             if i + 1 < len(order) and order[i + 1] // NEAR_BATCH == patch // NEAR_BATCH:
@@ -436,6 +437,7 @@ class ProgressiveSolver:
             transport.groups.add(patch // NEAR_BATCH)
             if making is not None:
                 self._step(making, to_end=True)
+            self._group_rows(new)
             making, new = (new, self._near_field_steps(new)), {}
             if i + 1 == len(order):
                 self._step(making, to_end=True)
@@ -532,6 +534,39 @@ class ProgressiveSolver:
         weights = (areas / (areas.sum() * per_element)).repeat_interleave(per_element)
         return eye_points(self.mesh.corners_of(members), self.patches.eye_level), weights
 
+    def _group_rows(self, nodes: dict[int, tuple[torch.Tensor | None, HemicubeView]]) -> None:
+        """Fill in, and keep, the rows (``node_row``) of the ``nodes`` (node -> (row or None,
+        view)) that have none: those of small receivers all in one pass
+        (``small_receiver_rows``; a reflecting node's few receivers under a pixel cost the
+        torch calls, not the arithmetic), each the same as made alone."""
+        batch = {}  # node -> (view, pixel limit)
+        for node, (F, view) in nodes.items():
+            if F is not None:
+                continue
+            limit = None
+            if self._eyes(node) is None:
+                limit = self._small_receiver_limit(self.small_receivers != "pixels" and bool(self._emitting(node).any()))
+            if limit is None:  # pixel sums, or a row of several eyes' renders
+                F = self.node_row(node, view)
+                self.rows.put(node, F)
+                nodes[node] = (F, view)
+            else:
+                batch[node] = (view, limit)
+        if batch:
+            with self.profiler.phase("form_factors"):
+                rows = small_receiver_rows([v for v, _ in batch.values()], self.mesh.corners, self.mesh.areas,
+                                           [limit for _, limit in batch.values()])
+            for (node, (view, _)), F in zip(batch.items(), rows):
+                self.rows.put(node, F)
+                nodes[node] = (F, view)
+
+    def _small_receiver_limit(self, emits: bool) -> float | None:
+        """The footprint in pixels under which a shooter's receivers get their factors from
+        ``small_receivers`` (``shot_row``), None where it hands out its pixel sums."""
+        if self.small_receivers == "pixels" or (self.small_receivers == "lamps" and not emits):
+            return None
+        return MAX_PIXELS if emits else BOUNCE_MAX_PIXELS
+
     def shot_row(self, view: HemicubeView, among: torch.Tensor | None, emits: bool) -> torch.Tensor:
         """(T,) the F_sj a shot from ``view`` (of the current mesh) hands out: its pixel sums, or
         those of the receivers covering few pixels replaced
@@ -543,20 +578,17 @@ class ProgressiveSolver:
         A receiver's reflected light comes from hundreds of shooters, whose pixel luck averages
         out, where its direct light comes from a few lamp nodes (measured: ``BOUNCE_MAX_PIXELS``,
         ``scene.model.resolved_small_receivers``)."""
-        if self.small_receivers == "pixels" or (self.small_receivers == "lamps" and not emits):
+        limit = self._small_receiver_limit(emits)
+        if limit is None:
             return view.form_factors
         with self.profiler.phase("form_factors"):
-            return small_receiver_form_factors(view, self.mesh.corners, self.mesh.areas,
-                                               MAX_PIXELS if emits else BOUNCE_MAX_PIXELS, among=among)
+            return small_receiver_form_factors(view, self.mesh.corners, self.mesh.areas, limit, among=among)
 
     def render_and_keep(self, shooter: int) -> HemicubeView:
-        """``render(shooter)``, kept with its row for the shooter's shots (a row from eyes is
-        made when the shooter shoots: the view may split it)."""
+        """``render(shooter)``, kept for the shooter's row, made when it shoots (a node the
+        patches' test splits never does)."""
         view = self.render(shooter)
-        if self._eyes(shooter) is None:
-            self._row(shooter, view)
-        else:
-            self._keep_view(shooter, view)
+        self._views[shooter] = view
         return view
 
     def _keep_view(self, shooter: int, view: HemicubeView) -> None:
