@@ -366,3 +366,39 @@ def test_a_sweeps_kept_rows_are_its_nodes_rows_made_alone():
     finally:
         solver.close()
     assert checked >= 10
+
+
+def test_the_shadow_map_test_reads_the_point_each_pixel_sees_in_a_turned_frame():
+    # The samples' test works per sample in its own view's frame; against the pixels' exact hit
+    # points (``HemicubeView.hits``) in frames turned off every axis, where mixing up the
+    # frame's rows and columns shows (an axis-aligned frame would hide it).
+    from hemirad.core.fastops import row_sums
+    from hemirad.transport.smallreceivers import _TOLERANCE, _sample_weights
+    mesh = build_mesh(hemirad.load_scene("cornell_box"))
+    renderer = HemicubeRenderer(mesh, R)
+    try:
+        views = [renderer.render(s) for s in (17, 1311)]
+    finally:
+        renderer.close()
+    points, owner = mesh.centroids, torch.arange(mesh.num_elements)
+    checked = 0
+    for view in views:
+        assert not torch.allclose(view.frame.abs(), torch.eye(3, dtype=torch.float64))  # turned
+        weight, visible = _sample_weights([view], torch.zeros_like(owner), points, owner)
+        hidden = (weight > 0) & (visible == 0)
+        ray = points - view.eye
+        pixels = atlas_pixels(ray @ view.frame.T, view.resolution)
+        k = view.element[pixels]
+        other = (k >= 0) & (k != owner) & (weight > 0)
+        kk = k.clamp(min=0)
+        toward = row_sums(view.normals[kk] * ray)
+        d_k = view.distance[kk]
+        crosses = (d_k * toward > 0) & (d_k.abs() < (1.0 - _TOLERANCE) * toward.abs())
+        d_j = view.distance
+        seen_at = view.hits(pixels) - view.eye[:, None]
+        in_front = (view.normals.T * seen_at).sum(0) - d_j > _TOLERANCE * d_j.abs()
+        expected = other & crosses & in_front
+        assert int(expected.sum()) >= 20  # the blocks hide elements
+        assert int((hidden != expected).sum()) <= 2  # rounding at the tolerance's edge
+        checked += 1
+    assert checked == 2

@@ -241,7 +241,8 @@ def _sample_weights(views: Sequence[HemicubeView], view_of: torch.Tensor, points
     # where the pixel's own ray (its centre's direction, in the world) meets k's plane,
     # along n_j from the eye
     direction = pixel_directions(first.resolution, points.device).index_select(1, pixels.index_select(0, other)).T
-    direction = row_sums(direction[:, :, None] * frames.index_select(0, other))  # (M, 3) in the world
+    axes = frames.index_select(0, other)  # (M, 3, 3): rows t, b, n in the world
+    direction = direction[:, 0:1] * axes[:, 0] + direction[:, 1:2] * axes[:, 1] + direction[:, 2:3] * axes[:, 2]
     seen_at = d_k / row_sums(direction * normal_k) * row_sums(direction * normal_j)
     in_front = seen_at - d_j > _TOLERANCE * d_j.abs()
     hidden = other.index_select(0, flatnonzero(crosses & in_front))

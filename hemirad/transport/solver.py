@@ -40,6 +40,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 20: a sweep group's small-receiver rows are made together (the last bits of atan2);
 #: 19: near fields take a small receiver's factor from its points (by reciprocity), and
 #: Lambert's factor to a triangle wholly above its point sums its three edges alone;
 #: 18: the answer's first solve corrects the lamps' small receivers only;
@@ -62,6 +63,8 @@ DEFAULT_CACHE_BYTES = 256 << 20
 #: a group, in patch index order), keeping their hemicubes' views until then (1.7 MB each at
 #: resolution 256; two groups' at most).
 NEAR_BATCH = 32
+#: A sweep group's rows are made this many nodes at a time, a step each (``_group_rows``).
+ROW_BATCH = 8
 
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
@@ -437,8 +440,7 @@ class ProgressiveSolver:
             transport.groups.add(patch // NEAR_BATCH)
             if making is not None:
                 self._step(making, to_end=True)
-            self._group_rows(new)
-            making, new = (new, self._near_field_steps(new)), {}
+            making, new = (new, self._group_steps(new)), {}
             if i + 1 == len(order):
                 self._step(making, to_end=True)
             if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
@@ -534,11 +536,17 @@ class ProgressiveSolver:
         weights = (areas / (areas.sum() * per_element)).repeat_interleave(per_element)
         return eye_points(self.mesh.corners_of(members), self.patches.eye_level), weights
 
-    def _group_rows(self, nodes: dict[int, tuple[torch.Tensor | None, HemicubeView]]) -> None:
+    def _group_steps(self, nodes: dict[int, tuple[torch.Tensor | None, HemicubeView]]) -> Generator:
+        """A sweep group's rows (``_group_rows``), then its near fields (``_near_field_steps``),
+        in steps made while the next group's hemicubes are drawn."""
+        yield from self._group_rows(nodes)
+        yield from self._near_field_steps(nodes)
+
+    def _group_rows(self, nodes: dict[int, tuple[torch.Tensor | None, HemicubeView]]) -> Generator:
         """Fill in, and keep, the rows (``node_row``) of the ``nodes`` (node -> (row or None,
-        view)) that have none: those of small receivers all in one pass
+        view)) that have none: those of small receivers ``ROW_BATCH`` nodes in a pass
         (``small_receiver_rows``; a reflecting node's few receivers under a pixel cost the
-        torch calls, not the arithmetic), each the same as made alone."""
+        torch calls, not the arithmetic), each the same as made alone; a step a pass."""
         batch = {}  # node -> (view, pixel limit)
         for node, (F, view) in nodes.items():
             if F is not None:
@@ -552,11 +560,14 @@ class ProgressiveSolver:
                 nodes[node] = (F, view)
             else:
                 batch[node] = (view, limit)
-        if batch:
+        batch = list(batch.items())
+        for start in range(0, len(batch), ROW_BATCH):
+            part = batch[start:start + ROW_BATCH]
+            yield
             with self.profiler.phase("form_factors"):
-                rows = small_receiver_rows([v for v, _ in batch.values()], self.mesh.corners, self.mesh.areas,
-                                           [limit for _, limit in batch.values()])
-            for (node, (view, _)), F in zip(batch.items(), rows):
+                rows = small_receiver_rows([view for _, (view, _) in part], self.mesh.corners, self.mesh.areas,
+                                           [limit for _, (_, limit) in part])
+            for (node, (view, _)), F in zip(part, rows):
                 self.rows.put(node, F)
                 nodes[node] = (F, view)
 
