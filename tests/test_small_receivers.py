@@ -7,14 +7,14 @@ import torch
 import yaml
 
 import hemirad
+from hemirad.assembly import make_solver
 from hemirad.core.errors import SceneError
 from hemirad.geometry.analytic import point_to_polygon, point_to_triangles
 from hemirad.geometry.mesh import Mesh
+from hemirad.scene.meshing import build_mesh
 from hemirad.scene.model import resolved_small_receivers
 from hemirad.transport.formfactor import delta_form_factors, hemicube_directions
 from hemirad.transport.renderer import HemicubeRenderer
-from hemirad.assembly import make_solver
-from hemirad.scene.meshing import build_mesh
 from hemirad.transport.smallreceivers import (BOUNCE_MAX_PIXELS, MAX_PIXELS, atlas_pixels, footprint_pixels, sample_barycentrics,
                                               small_receiver_form_factors, small_receiver_rows)
 from hemirad.transport.solver import ProgressiveSolver

@@ -182,8 +182,8 @@ def visible_form_factors(views: Sequence[HemicubeView], view_of: torch.Tensor, r
 
     The midpoint rule's relative error falls like the square of a sub-triangle's size over
     its distance (``NEAR``). Every view's samples go through one pass (a reflecting
-    shooter's few receivers under a pixel cost the torch calls, not the arithmetic), and a
-    receiver's numbers do not depend on which others share the pass.
+    shooter's few receivers under a pixel cost the torch calls, not the arithmetic), each in
+    its own view's frame.
 
     Args:
         views: the hemicubes, of one mesh; view_of: (n,) the one each receiver is seen from,
@@ -192,6 +192,8 @@ def visible_form_factors(views: Sequence[HemicubeView], view_of: torch.Tensor, r
         levels: (n,) int64 each one's samples: the level^2 points of ``sample_barycentrics``.
     """
     n, device = len(rows), corners.device
+    if n > 1 and bool((view_of[1:] < view_of[:-1]).any()):
+        raise ValueError("visible_form_factors: view_of must be non-decreasing (receivers grouped by view)")
     # every receiver's level^2 samples in turn: sample i of receiver p is row begin[level_p] + i
     # of the table (one gather for all levels)
     table, begin = _sample_table(int(levels.max()), device)
@@ -253,7 +255,8 @@ def small_receiver_rows(views: Sequence[HemicubeView], corners: torch.Tensor, ar
                         max_pixels: Sequence[float], max_level: int = SAMPLE_LEVEL) -> list[torch.Tensor]:
     """``small_receiver_form_factors`` of each of ``views`` (of one mesh), each with its own
     ``max_pixels``: the rows F_sj (T,) of a sweep group's shooters, made in one pass; each
-    the same as made alone."""
+    the same as made alone to the last bits that the vectorised ``atan2`` of the closed
+    forms near the eye rounds by its place in the batch."""
     found = [small_receivers(view, corners, areas, limit) for view, limit in zip(views, max_pixels)]
     rows = torch.cat([r for r, _ in found])
     if len(rows) == 0:
@@ -265,9 +268,12 @@ def small_receiver_rows(views: Sequence[HemicubeView], corners: torch.Tensor, ar
     out = []
     for view, part, mine in zip(views, rows.split(counts), sampled.split(counts)):
         pixel_sums = view.form_factors
+        if len(part) == 0:
+            out.append(pixel_sums)
+            continue
         F = pixel_sums.index_copy(0, part, mine)
         hemicube_total, total = pixel_sums.sum(), F.sum()
-        out.append(pixel_sums if len(part) == 0 or float(total) <= 0.0 else F * (hemicube_total / total))
+        out.append(pixel_sums if float(total) <= 0.0 else F * (hemicube_total / total))
     return out
 
 

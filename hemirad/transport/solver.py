@@ -546,7 +546,8 @@ class ProgressiveSolver:
         """Fill in, and keep, the rows (``node_row``) of the ``nodes`` (node -> (row or None,
         view)) that have none: those of small receivers ``ROW_BATCH`` nodes in a pass
         (``small_receiver_rows``; a reflecting node's few receivers under a pixel cost the
-        torch calls, not the arithmetic), each the same as made alone; a step a pass."""
+        torch calls, not the arithmetic), each as made alone up to the last bits of the closed
+        forms' ``atan2``; a step a pass."""
         batch = {}  # node -> (view, pixel limit)
         for node, (F, view) in nodes.items():
             if F is not None:
