@@ -500,9 +500,8 @@ class ProgressiveSolver:
         those of its eyes (the first of a one-element node's is its centroid, the view's own).
         ``among``: as ``shot_row``'s."""
         eyes = self._eyes(shooter)
-        if eyes is None:  # pixel sums need not know whether it emits
-            emits = self.small_receivers != "pixels" and bool(self._emitting(shooter).any())
-            return self.shot_row(view, among, emits)
+        if eyes is None:
+            return self.shot_row(view, among, self._emits(shooter))
         points, weights = eyes[0].cpu().numpy(), eyes[1].tolist()
         _, normal, tangent = self._placement(shooter)
         # a one-element node's first eye is its centroid: the view's own row; a larger node's
@@ -514,6 +513,11 @@ class ProgressiveSolver:
                 self.renderer.prefetch_at(points[i + 1], normal, tangent)
             F += weights[i] * self.shot_row(self.renderer.render_at(points[i], normal, tangent), among, True)
         return F
+
+    def _emits(self, shooter: int) -> bool:
+        """Whether an element of ``shooter`` emits, as ``shot_row`` asks it (pixel sums need
+        not know, and are not asked)."""
+        return self.small_receivers != "pixels" and bool(self._emitting(shooter).any())
 
     def _emitting(self, shooter: int) -> torch.Tensor:
         """(K,) bool: which elements of ``shooter`` (a node; without patches, an element) emit."""
@@ -552,15 +556,17 @@ class ProgressiveSolver:
         for node, (F, view) in nodes.items():
             if F is not None:
                 continue
-            limit = None
-            if self._eyes(node) is None:
-                limit = self._small_receiver_limit(self.small_receivers != "pixels" and bool(self._emitting(node).any()))
-            if limit is None:  # pixel sums, or a row of several eyes' renders
+            if self._eyes(node) is not None:  # a row of several eyes' renders
                 F = self.node_row(node, view)
-                self.rows.put(node, F)
-                nodes[node] = (F, view)
             else:
-                batch[node] = (view, limit)
+                emits = self._emits(node)
+                limit = self._small_receiver_limit(emits)
+                if limit is not None:
+                    batch[node] = (view, limit)
+                    continue
+                F = self.shot_row(view, None, emits)  # pixel sums
+            self.rows.put(node, F)
+            nodes[node] = (F, view)
         batch = list(batch.items())
         for start in range(0, len(batch), ROW_BATCH):
             part = batch[start:start + ROW_BATCH]
