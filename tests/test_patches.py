@@ -11,7 +11,7 @@ import hemirad
 from hemirad.adaptive.shooter_split import point_source_test
 from hemirad.assembly import NEAR_REACH, make_solver
 from hemirad.core.errors import HemiradWarning
-from hemirad.geometry.patches import build_patches, element_sides
+from hemirad.geometry.patches import build_patches, element_sides, plane_axes
 from hemirad.transport.shooters import PatchShooters, back_face_share, either, eye_points, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver
 
@@ -46,6 +46,41 @@ def test_patches_tile_each_plane_and_their_trees_reach_every_element():
         centroid = (mesh.centroids[members] * areas[:, None]).sum(0) / areas.sum()
         torch.testing.assert_close(tree.centroid[root], centroid)
     assert np.allclose(element_sides(mesh), 0.25)
+
+
+def test_every_node_splits_into_the_quadrants_of_its_box_numbered_depth_first():
+    # uneven elements (two sizes on one floor) make trees of several depths and lopsided quadrants
+    floor = quad((0, 0, 0), (1.0, 0, 0), (0, 0.6, 0))
+    mesh = quads_mesh([floor, quad((1.0, 0, 0), (0.7, 0, 0), (0, 0.6, 0))], [0.1, 0.06])
+    tree = build_patches(mesh, np.full(mesh.num_elements, 0.5))
+    u, v = (torch.from_numpy(axis) for axis in plane_axes(mesh.normals[0].numpy()))  # the floor's
+    depth, next_number = 0, 0
+
+    def check(node, members, level):  # the recursive definition the tree must equal
+        nonlocal depth, next_number
+        assert node == next_number  # depth-first: a node, then each child's subtree in turn
+        next_number += 1
+        depth = max(depth, level)
+        assert sorted(tree.leaf[members].tolist()) == list(range(int(tree.lo[node]), int(tree.hi[node])))
+        areas = mesh.areas[members]
+        torch.testing.assert_close(tree.centroid[node], (mesh.centroids[members] * areas[:, None]).sum(0) / areas.sum())
+        if len(members) == 1:
+            assert tree.children(node) == []
+            return
+        xy = torch.stack([mesh.centroids[members] @ u, mesh.centroids[members] @ v], 1)
+        mid = 0.5 * (xy.amin(0) + xy.amax(0))
+        quadrant = (xy[:, 0] > mid[0]).long() * 2 + (xy[:, 1] > mid[1]).long()
+        parts = [members[quadrant == q] for q in range(4) if (quadrant == q).any()]
+        if len(parts) == 1:  # coincident centroids: halves
+            parts = [members[:len(members) // 2], members[len(members) // 2:]]
+        assert len(tree.children(node)) == len(parts)
+        for child, part in zip(tree.children(node), parts):
+            assert int(tree.lo[child]) >= int(tree.lo[node]) and int(tree.hi[child]) <= int(tree.hi[node])
+            check(child, part, level + 1)
+
+    for patch in range(tree.num_patches):
+        check(int(tree.root[patch]), torch.nonzero(tree.patch == patch).reshape(-1), 0)
+    assert next_number == tree.num_nodes and depth >= 3
 
 
 @pytest.mark.parametrize("totals", ["hemicube", "area"])

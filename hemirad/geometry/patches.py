@@ -35,7 +35,7 @@ class PatchTree:
         child_start: (N + 1,) int64 and child_ids: (C,) int64: the children of node n are
             ``child_ids[child_start[n]:child_start[n + 1]]`` (none: a single element).
         centroid, normal: (N, 3) float64 where a node shoots from: the area-weighted centroid
-            of its elements (on a curved surface, ``_TreeBuilder._eye_point``) and their
+            of its elements (on a curved surface, ``_eye_point``) and their
             plane's unit normal.
     """
 
@@ -74,11 +74,31 @@ def element_sides(mesh: Mesh) -> np.ndarray:
 
 
 def plane_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors u, v spanning the plane of the unit ``normal`` (3,), u x v = normal."""
-    helper = np.eye(3)[int(np.argmin(np.abs(normal)))]  # the world axis least along the normal
+    """Two unit vectors u, v spanning the plane of the unit ``normal`` (3,), u x v = normal;
+    or of each of the (k, 3) ``normal``, as two (k, 3)."""
+    normal = np.asarray(normal, dtype=np.float64)
+    helper = np.eye(3)[np.argmin(np.abs(normal), axis=-1)]  # the world axis least along the normal
     u = np.cross(helper, normal)
-    u /= np.linalg.norm(u)
+    u /= _lengths(u)[..., None]
     return u, np.cross(normal, u)
+
+
+def _lengths(x: np.ndarray) -> np.ndarray:
+    """(...,) the length of each of the (..., 3) vectors ``x``, to the last bit as
+    ``np.linalg.norm`` gives one vector's (a dot product; a sum of squares rounds otherwise)."""
+    return np.sqrt((x[..., None, :] @ x[..., :, None])[..., 0, 0])
+
+
+def _run_sums(x: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(k, 3) the sums of the k runs of rows ``x[starts[i]:starts[i] + counts[i]]`` of the
+    (n, 3) ``x``, each added row after row, to the last bit as ``ndarray.sum(0)`` adds one
+    run (``np.add.reduceat`` does not)."""
+    total = x[starts].copy()
+    by_length = np.argsort(-counts, kind="stable")
+    for rank in range(1, int(counts.max(initial=1))):
+        live = by_length[:int(np.searchsorted(-counts[by_length], -rank, side="left"))]
+        total[live] += x[starts[live] + rank]
+    return total
 
 
 def build_patches(mesh: Mesh, patch_size: np.ndarray, owner: np.ndarray | None = None) -> PatchTree:
@@ -104,25 +124,62 @@ def group_patches(mesh: Mesh, group: np.ndarray) -> PatchTree:
     in increasing group), each split into its quadrant tree. For a refined mesh whose
     elements carry the patch of the initial element they lie in
     (``PatchShooters.inherit``): refinement makes elements inside patches, not new patches."""
-    normals = mesh.normals.cpu().numpy()
-    areas = mesh.areas.cpu().numpy()
     _, key = np.unique(np.asarray(group), return_inverse=True)
     order = np.argsort(key, kind="stable")
-    groups = []
-    for members in np.split(order, np.flatnonzero(np.diff(key[order])) + 1):
-        groups.append((members, *_mean_plane_axes(members, normals, areas)))
-    return _grow_trees(mesh, groups)
+    cuts = np.flatnonzero(np.diff(key[order])) + 1
+    weighted = mesh.normals.cpu().numpy()[order] * mesh.areas.cpu().numpy()[order, None]
+    starts = np.r_[0, cuts]
+    normal = _run_sums(weighted, starts, np.diff(np.r_[starts, len(order)]))  # as _mean_plane_axes sums one
+    u, v = plane_axes(normal / _lengths(normal)[:, None])
+    return _grow_trees(mesh, list(zip(np.split(order, cuts), u, v)))
 
 
 def _grow_trees(mesh: Mesh, groups: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> PatchTree:
-    """The tree of patches ``groups`` (members (k,), plane axes u, v), in order."""
-    builder = _TreeBuilder(mesh.centroids.cpu().numpy(), mesh.normals.cpu().numpy(), mesh.areas.cpu().numpy(),
-                           mesh.corners.cpu().numpy(), mesh.plane_ids.cpu().numpy())
-    roots, patch = [], np.empty(mesh.num_elements, dtype=np.int64)
-    for index, (members, u, v) in enumerate(groups):
-        patch[members] = index
-        roots.append(builder.node(members, u, v))
-    return builder.finish(np.asarray(roots, dtype=np.int64), patch)
+    """The tree of patches ``groups`` (members (k,), plane axes u, v), in order: every patch
+    split into the quadrants of its centroids' bounding square in its plane, down to single
+    elements, all patches' nodes of one depth at a time.
+
+    Each splitting node's elements are one contiguous run of ``order`` (position -> element);
+    a stable sort of each run by quadrant makes its children's runs, so ``order`` ends as the
+    leaves' order. Nodes are made breadth-first and numbered depth-first at the end."""
+    centroids, normals, areas = (x.cpu().numpy() for x in (mesh.centroids, mesh.normals, mesh.areas))
+    corners, plane_ids = mesh.corners.cpu().numpy(), mesh.plane_ids.cpu().numpy()
+    sizes = np.asarray([len(members) for members, _, _ in groups], dtype=np.int64)
+    order = np.concatenate([members for members, _, _ in groups]).astype(np.int64)
+    # positions in the plane, once per patch: a node's quadrants are of its own points' box
+    xy = np.concatenate([centroids[members] @ np.stack([u, v]).T for members, u, v in groups])
+    patch = np.empty(mesh.num_elements, dtype=np.int64)
+    patch[order] = np.repeat(np.arange(len(groups)), sizes)
+    lo = _exclusive_cumsum(sizes)
+    levels = [(np.arange(len(groups)), lo, lo + sizes, np.full(len(groups), -1))]  # (ids, lo, hi, parent)
+    eyes = []  # per level: (ids, eye, normal) of its nodes of several elements
+    count = len(groups)
+    while True:
+        ids, lo, hi, _ = levels[-1]
+        split = hi - lo > 1
+        if not split.any():
+            break
+        ids, lo, n = ids[split], lo[split], (hi - lo)[split]
+        at = np.repeat(lo - _exclusive_cumsum(n), n) + np.arange(int(n.sum()))  # the runs' positions
+        run = np.repeat(np.arange(len(lo)), n)
+        starts = _exclusive_cumsum(n)
+        eyes.append((ids, *_node_eyes(order[at], starts, centroids, normals, areas, corners, plane_ids)))
+        # quadrants of each run's bounding box; a run all in one splits in halves by position
+        p = xy[at]
+        mid = 0.5 * (np.minimum.reduceat(p, starts) + np.maximum.reduceat(p, starts))[run]
+        quadrant = (p[:, 0] > mid[:, 0]).astype(np.int64) * 2 + (p[:, 1] > mid[:, 1])
+        filled = np.bincount(run * 4 + quadrant, minlength=4 * len(lo)).reshape(-1, 4)
+        alone = ((filled > 0).sum(1) == 1)[run]
+        rank = np.arange(len(at)) - starts[run]
+        quadrant = np.where(alone, (rank >= (n // 2)[run]).astype(np.int64), quadrant)
+        counts = np.bincount(run * 4 + quadrant, minlength=4 * len(lo))
+        by_quadrant = np.argsort(run * 4 + quadrant, kind="stable")
+        order[at], xy[at] = order[at[by_quadrant]], xy[at[by_quadrant]]
+        child = np.flatnonzero(counts)  # (run, quadrant) pairs holding elements, in order
+        child_lo = lo[child // 4] + (np.cumsum(counts.reshape(-1, 4), 1) - counts.reshape(-1, 4)).reshape(-1)[child]
+        levels.append((count + np.arange(len(child)), child_lo, child_lo + counts[child], ids[child // 4]))
+        count += len(child)
+    return _numbered_depth_first(levels, eyes, order, patch, centroids, normals)
 
 
 def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarray, areas: np.ndarray,
@@ -244,7 +301,8 @@ def hole_rims(mesh: Mesh, least: np.ndarray | None = None) -> np.ndarray:
 
 def _each_alone(elements: np.ndarray, normals: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """A patch of one element for each of ``elements`` (k,), with its own plane's axes."""
-    return [(elements[i:i + 1], *plane_axes(normals[elements[i]])) for i in range(len(elements))]
+    u, v = plane_axes(normals[elements].reshape(-1, 3))
+    return list(zip(elements.reshape(-1, 1), u, v))
 
 
 def _crossed(part: np.ndarray, own: int, owner: np.ndarray, low: np.ndarray, high: np.ndarray) -> bool:
@@ -257,65 +315,71 @@ def _crossed(part: np.ndarray, own: int, owner: np.ndarray, low: np.ndarray, hig
     return bool((inside & (owner != own)).any())
 
 
-class _TreeBuilder:
-    """Numbers nodes depth-first while splitting each patch into quadrants."""
-
-    def __init__(self, centroids, normals, areas, corners, plane_ids):
-        self.centroids, self.normals, self.areas = centroids, normals, areas
-        self.corners, self.plane_ids = corners, plane_ids
-        self.leaf_order: list[int] = []
-        self.rows: list[list] = []  # per node: lo, hi, children, centroid, normal
-
-    def node(self, members: np.ndarray, u: np.ndarray, v: np.ndarray) -> int:
-        index = len(self.rows)
-        self.rows.append(None)
-        lo = len(self.leaf_order)
-        if len(members) == 1:
-            e = int(members[0])
-            self.leaf_order.append(e)
-            self.rows[index] = [lo, lo + 1, [], self.centroids[e], self.normals[e]]
-            return index
-        parts = _quadrants(self.centroids[members] @ np.stack([u, v]).T)
-        children = [self.node(members[part], u, v) for part in parts]
-        weights = self.areas[members]
-        centroid = (self.centroids[members] * weights[:, None]).sum(0) / weights.sum()
-        normal = (self.normals[members] * weights[:, None]).sum(0)
-        normal /= np.linalg.norm(normal)
-        if not np.all(self.plane_ids[members] == self.plane_ids[members[0]]):  # a curved node
-            centroid = self._eye_point(members, centroid, normal)
-        self.rows[index] = [lo, len(self.leaf_order), children, centroid, normal]
-        return index
-
-    def _eye_point(self, members: np.ndarray, centroid: np.ndarray, normal: np.ndarray) -> np.ndarray:
-        """Where a curved node shoots from: its area-weighted centroid lies off its surface
-        (under a convex cap, where its hemicube would see its own back faces), so the centroid
-        of its element nearest to that point, raised along the node's ``normal`` until no corner
-        of its elements lies above (none of them in its own hemicube)."""
-        nearest = members[int(np.argmin(np.linalg.norm(self.centroids[members] - centroid, axis=1)))]
-        point = self.centroids[nearest]
-        rise = float(((self.corners[members].reshape(-1, 3) - point) @ normal).max())
-        return point + max(rise, 0.0) * normal
-
-    def finish(self, roots: np.ndarray, patch: np.ndarray) -> PatchTree:
-        lo, hi, children, centroid, normal = (list(col) for col in zip(*self.rows))
-        leaf = np.empty(len(self.leaf_order), dtype=np.int64)
-        leaf[np.asarray(self.leaf_order, dtype=np.int64)] = np.arange(len(self.leaf_order))
-        child_start = np.concatenate([[0], np.cumsum([len(c) for c in children])])
-        child_ids = np.asarray([c for cs in children for c in cs], dtype=np.int64)
-        f64 = dict(dtype=torch.float64)
-        return PatchTree(torch.from_numpy(leaf), torch.from_numpy(patch), torch.from_numpy(roots),
-                         torch.tensor(lo), torch.tensor(hi), torch.from_numpy(child_start), torch.from_numpy(child_ids),
-                         torch.tensor(np.stack(centroid), **f64), torch.tensor(np.stack(normal), **f64))
+def _exclusive_cumsum(x: np.ndarray) -> np.ndarray:
+    return np.concatenate([[0], np.cumsum(x)[:-1]]).astype(np.int64)
 
 
-def _quadrants(xy: np.ndarray) -> list[np.ndarray]:
-    """Split (k, 2) points (k >= 2) into the non-empty quadrants of their bounding box, or
-    into two halves by index when they all lie in one quadrant (coincident centroids)."""
-    mid = 0.5 * (xy.min(0) + xy.max(0))
-    quadrant = (xy[:, 0] > mid[0]).astype(np.int64) * 2 + (xy[:, 1] > mid[1])
-    parts = [np.flatnonzero(quadrant == q) for q in range(4)]
-    parts = [p for p in parts if len(p)]
-    if len(parts) == 1:
-        half = len(xy) // 2
-        parts = [np.arange(half), np.arange(half, len(xy))]
-    return parts
+def _node_eyes(elements: np.ndarray, starts: np.ndarray, centroids: np.ndarray, normals: np.ndarray,
+               areas: np.ndarray, corners: np.ndarray, plane_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each of k nodes shoots from (k, 3) and its unit normal (k, 3), the elements of
+    node i being ``elements[starts[i]:starts[i + 1]]``: the area-weighted centroid and mean
+    normal of its elements; on a curved surface (elements of several planes), ``_eye_point``."""
+    weight = areas[elements]
+    ends = np.append(starts[1:], len(elements))
+    counts = ends - starts
+    # every sum as one node's own would add it (the same eyes to the last bit as node by node)
+    total = np.asarray([weight[start:end].sum() for start, end in zip(starts.tolist(), ends.tolist())])
+    eye = _run_sums(centroids[elements] * weight[:, None], starts, counts) / total[:, None]
+    normal = _run_sums(normals[elements] * weight[:, None], starts, counts)
+    normal /= _lengths(normal)[:, None]
+    plane = plane_ids[elements]
+    for i in np.flatnonzero(np.minimum.reduceat(plane, starts) != np.maximum.reduceat(plane, starts)):
+        eye[i] = _eye_point(elements[starts[i]:ends[i]], eye[i], normal[i], centroids, corners)
+    return eye, normal
+
+
+def _eye_point(members: np.ndarray, centroid: np.ndarray, normal: np.ndarray, centroids: np.ndarray,
+               corners: np.ndarray) -> np.ndarray:
+    """Where a curved node shoots from: its area-weighted centroid lies off its surface (under
+    a convex cap, where its hemicube would see its own back faces), so the centroid of its
+    element nearest to that point, raised along the node's ``normal`` until no corner of its
+    elements ``members`` lies above (none of them in its own hemicube)."""
+    nearest = members[int(np.argmin(np.linalg.norm(centroids[members] - centroid, axis=1)))]
+    point = centroids[nearest]
+    rise = float(((corners[members].reshape(-1, 3) - point) @ normal).max())
+    return point + max(rise, 0.0) * normal
+
+
+def _numbered_depth_first(levels: list[tuple[np.ndarray, ...]], eyes: list[tuple[np.ndarray, ...]],
+                          order: np.ndarray, patch: np.ndarray, centroids: np.ndarray,
+                          normals: np.ndarray) -> PatchTree:
+    """The ``PatchTree`` of nodes made breadth-first: ``levels`` (ids, lo, hi, parent) per
+    depth, each node's children made together in order; ``eyes`` (ids, eye, normal) of the
+    nodes of several elements; ``order`` the leaves' elements. Renumbered depth-first, a
+    node before its children and each child's subtree before its next sibling's."""
+    ids, lo, hi, parent = (np.concatenate(column) for column in zip(*levels))  # ids == arange(N)
+    size = np.ones(len(ids), dtype=np.int64)  # nodes in each subtree
+    for level, _, _, up in reversed(levels[1:]):
+        np.add.at(size, up, size[level])
+    number = np.empty(len(ids), dtype=np.int64)
+    roots = levels[0][0]
+    number[roots] = _exclusive_cumsum(size[roots])
+    for level, _, _, up in levels[1:]:  # siblings are made together: runs of one parent
+        before = np.cumsum(size[level]) - size[level]
+        first = np.maximum.accumulate(np.where(np.r_[True, up[1:] != up[:-1]], np.arange(len(level)), 0))
+        number[level] = number[up] + 1 + before - before[first]
+    eye, normal = np.empty((len(ids), 3)), np.empty((len(ids), 3))
+    single = hi - lo == 1
+    eye[single], normal[single] = centroids[order[lo[single]]], normals[order[lo[single]]]
+    for level, at, toward in eyes:
+        eye[level], normal[level] = at, toward
+    children = np.arange(len(roots), len(ids))
+    children = children[np.argsort(number[parent[children]], kind="stable")]
+    child_count = np.zeros(len(ids), dtype=np.int64)
+    child_count[number] = np.bincount(parent[len(roots):], minlength=len(ids))
+    leaf = np.empty(len(order), dtype=np.int64)
+    leaf[order] = np.arange(len(order))
+    by_number = np.argsort(number)
+    return PatchTree(*(torch.from_numpy(np.ascontiguousarray(x)) for x in (
+        leaf, patch, number[roots], lo[by_number], hi[by_number], np.concatenate([[0], np.cumsum(child_count)]),
+        number[children], eye[by_number], normal[by_number])))
