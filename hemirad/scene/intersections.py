@@ -100,8 +100,8 @@ def _cut_in_place(surface: SurfaceGeometry, corners: np.ndarray, cutting: np.nda
     facet_of = pairs[rows, 0]
     vertices, kept = surface.vertices, np.ones(len(corners), dtype=bool)
     added_points, added_triangles, count = [], [], len(vertices)
-    for t in np.unique(facet_of):
-        u, v = plane_axes(normals[t])
+    facets = np.unique(facet_of)
+    for t, u, v in zip(facets, *plane_axes(normals[facets])):
         frame = PlaneFrame(corners[t, 0], normals[t], u, v)
         outline = shapely.Polygon(frame.to_plane(corners[t]))
         lines = _straightened(inner_lines(frame.to_plane(segments[facet_of == t]), outline, tolerance), tolerance)
