@@ -9,7 +9,7 @@ from hemirad.geometry.mesh import Mesh
 from hemirad.transport.formfactor import delta_form_factors, raw_delta_form_factors
 from hemirad.transport.renderer import HemicubeRenderer
 
-from patches import closed_box, quad, quads_mesh
+from patches import closed_box, open_box, quad, quads_mesh
 
 X, Y, Z = np.eye(3)
 
@@ -49,6 +49,36 @@ def test_closed_box_form_factors_sum_to_one():
             assert float(F[shooter]) == 0.0
     finally:
         ff.close()
+
+
+
+def test_what_a_hemicube_sends_into_back_faces_is_what_fronts_and_the_sky_do_not_receive():
+    # a box seen from inside (fronts), the same box turned inside out (backs), a half-turned
+    # one, and the turned box open at the top (some pixels see nothing): every pixel's power
+    # goes to a front, into a back or out, none twice
+    box, lidless = closed_box(element_size=0.25), open_box(element_size=0.25)
+
+    def turned(mesh, which):
+        triangles = torch.where(which[:, None], mesh.triangles[:, [0, 2, 1]], mesh.triangles)
+        return Mesh(mesh.vertices, triangles, mesh.surface, mesh.material, mesh.surface_names)
+
+    everything = torch.ones(box.num_elements, dtype=torch.bool)
+    for mesh, back in ((box, 0.0), (turned(box, everything), 1.0),
+                       (turned(box, torch.arange(box.num_elements) % 2 == 0), None),
+                       (turned(lidless, torch.ones(lidless.num_elements, dtype=torch.bool)), None)):
+        ff = HemicubeRenderer(mesh, 64)
+        try:
+            view = ff.render_at(np.array([0.4, 0.45, 0.0]), Z, X)  # on the floor, inside
+            sky = float(view.weight[view.element < 0].sum())
+            assert float(view.back_share) + float(view.form_factors.sum()) + sky == pytest.approx(1.0, rel=1e-12)
+            masked = float(view.weight[(view.element >= 0) & ~view.front].sum())
+            assert float(view.back_share) == pytest.approx(masked, rel=1e-12, abs=1e-15)
+            if back is not None:
+                assert float(view.back_share) == pytest.approx(back, abs=1e-12)
+            else:
+                assert 0.1 < float(view.back_share) < 0.9
+        finally:
+            ff.close()
 
 
 def area_to_area(mesh, source_count, resolution):

@@ -73,10 +73,20 @@ def element_form_factors(element: torch.Tensor, front: torch.Tensor, weights: to
     Returns:
         (num_elements,) float64.
     """
-    # Every pixel, the others with weight zero: the same sums (x + 0 = x), without
-    # compacting the atlas by the mask (several times slower).
+    return form_factors_and_back_share(element, front, weights, num_elements)[0]
+
+
+def form_factors_and_back_share(element: torch.Tensor, front: torch.Tensor, weights: torch.Tensor,
+                                num_elements: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``element_form_factors``, and () the share of the weights whose pixels see a back face,
+    from one sum over the pixels: every pixel in it, those that see no front summed into one
+    more bin (``num_elements``), those that see nothing with weight zero. A front's sum adds
+    the same pixels in the same order as its own would (x + 0 = x: bit for bit), without
+    compacting the atlas by a mask (several times slower)."""
     element, front, weights = element.reshape(-1), front.reshape(-1), weights.reshape(-1)
-    return sum_by_index(element.clamp(min=0), torch.where(front, weights, 0.0), num_elements)
+    sums = sum_by_index(torch.where(front, element, num_elements), torch.where(element >= 0, weights, 0.0),
+                        num_elements + 1)
+    return sums[:num_elements], sums[num_elements]
 
 
 def sum_by_index(index: torch.Tensor, values: torch.Tensor, size: int) -> torch.Tensor:

@@ -6,7 +6,7 @@ import torch
 
 from hemirad.core.timing import Profiler
 from hemirad.geometry.mesh import Mesh
-from hemirad.transport.formfactor import delta_form_factors, element_form_factors
+from hemirad.transport.formfactor import delta_form_factors, form_factors_and_back_share
 from hemirad.transport.hemicube import Hemicube, tangent_frame
 from hemirad.transport.view import HemicubeView
 
@@ -129,10 +129,10 @@ class HemicubeRenderer:
         with self.profiler.phase("form_factors"):
             element, front = (torch.from_numpy(x).to(self.device).reshape(-1) for x in atlas)
             weight = self.weights.reshape(-1)
-            F = element_form_factors(element, front, weight, mesh.num_elements)
+            F, back_share = form_factors_and_back_share(element, front, weight, mesh.num_elements)
         return HemicubeView(element, front, weight, torch.from_numpy(eye).to(self.device),
                             torch.from_numpy(np.ascontiguousarray(frame, dtype=np.float64)).to(self.device),
-                            mesh.normals, mesh.centroids, F, self.hemicube.resolution)
+                            mesh.normals, mesh.centroids, F, self.hemicube.resolution, back_share)
 
     def _drop_prefetched(self) -> None:
         """Forget the prefetched hemicubes (the mesh changes, or the renderer closes)."""

@@ -46,7 +46,7 @@ def _seen_back(view: HemicubeView) -> torch.Tensor:
 
 def back_face_share(view: HemicubeView) -> float:
     """The share of a hemicube's power that its pixels send into back faces."""
-    return float(view.weight[_seen_back(view)].sum())
+    return float(view.back_share)
 
 
 def under_cover(view: HemicubeView, points: torch.Tensor, corners: torch.Tensor) -> bool:

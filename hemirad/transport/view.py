@@ -63,6 +63,8 @@ class HemicubeView:
         form_factors: (T,) float64 F_sj, the sum of ``weight`` over the front-facing pixels
             of each element.
         resolution: R.
+        back_share: () float64, the sum of ``weight`` over the pixels that see a back face:
+            the share of the shooter's power that its hemicube sends into them.
         relabelled_pixels: (N,) int64 for a view carried over a split
             (``adaptive.relabel.relabel_view``), the pixels relabelled, the only ones that
             see new elements; None for a render.
@@ -77,6 +79,7 @@ class HemicubeView:
     points: torch.Tensor
     form_factors: torch.Tensor
     resolution: int
+    back_share: torch.Tensor
     relabelled_pixels: torch.Tensor | None = None
 
     def copy(self) -> "HemicubeView":
