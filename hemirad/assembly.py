@@ -12,7 +12,7 @@ from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patches import build_patches, element_sides, group_patches, hole_rims
 from hemirad.lighting.photometry import emission_table
 from hemirad.scene.meshing import build_mesh, surface_objects
-from hemirad.scene.model import MeshFile, Scene, resolved_small_receivers
+from hemirad.scene.model import MeshFile, Scene, resolved_reflector_resolution, resolved_small_receivers
 from hemirad.transport.shooters import PatchShooters, ShooterTest, either, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver
 
@@ -83,7 +83,8 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
                              near_totals=near_totals(scene),
                              refine_shots=scene.refine.shots if refiner is not None else None, device=device,
                              small_receivers=resolved_small_receivers(options.small_receivers, refiner is not None),
-                             refined_small_receivers=resolved_small_receivers(options.small_receivers, True))
+                             refined_small_receivers=resolved_small_receivers(options.small_receivers, True),
+                             reflector_resolution=resolved_reflector_resolution(options) if patches is not None else None)
 
 
 def make_patches(scene: Scene, mesh: Mesh, device: torch.device) -> PatchShooters:

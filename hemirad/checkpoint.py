@@ -28,7 +28,7 @@ import torch
 from hemirad.core.atomic import write_atomically
 from hemirad.core.errors import HemiradInputError, bounded_repr
 from hemirad.scene.meshfile import cached_contents
-from hemirad.scene.model import MeshFile, Scene
+from hemirad.scene.model import MeshFile, Scene, resolved_reflector_resolution
 from hemirad.transport import solver as solver_module
 
 #: The version of the checkpoint file's layout (what ``write`` stores); bump it when that changes.
@@ -92,6 +92,7 @@ def fingerprint(scene: Scene) -> dict[str, object]:
         "materials": _sha256(json.dumps(materials, sort_keys=True).encode()),
         "objects": _objects_digest(scene),
         "solver.resolution": scene.solver.resolution,
+        "solver.reflector_resolution": resolved_reflector_resolution(scene.solver),
         "meshing.contacts": scene.meshes_contacts,
         "meshing.intersections": scene.meshing.intersections,
         **{f"solver.{k}": getattr(scene.solver, k)

@@ -62,6 +62,10 @@ def _resolution(text: str) -> int:
     return value
 
 
+def _reflector_resolution(text: str) -> int | str:
+    return text if text == "auto" else _resolution(text)
+
+
 def _patch_size(text: str) -> float | str:
     if text in ("auto", "none"):
         return text
@@ -129,6 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--unshot-fraction", type=_fraction,
                         help="stop when unshot / emitted power falls below this (solver.unshot_fraction)")
     parser.add_argument("--resolution", type=_resolution, help="hemicube resolution (solver.resolution)")
+    parser.add_argument("--reflector-resolution", type=_reflector_resolution, metavar="auto|N",
+                        help="with patches, the hemicube resolution of nodes that emit nothing: auto (half "
+                             "of --resolution, not under 128) or an even integer (solver.reflector_resolution)")
     parser.add_argument("--patch-size", type=_patch_size, metavar="auto|none|SIZE",
                         help="patches that shoot for their elements: auto (about 2 x 2 elements), a side "
                              "length, or none: every element shoots, as in the paper (solver.patch_size)")
@@ -245,6 +252,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     scene = load_scene(args.scene)
     solver_options = {"max_shots": ("--shots", args.shots), "unshot_fraction": ("--unshot-fraction",
                       args.unshot_fraction), "resolution": ("--resolution", args.resolution),
+                      "reflector_resolution": ("--reflector-resolution", args.reflector_resolution),
                       "device": ("--device", args.device), "patch_size": ("--patch-size", args.patch_size),
                       "small_receivers": ("--small-receivers", args.small_receivers),
                       "reconstruction": ("--reconstruction", args.reconstruction),

@@ -723,9 +723,10 @@ def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_element
         "sweeps": solver.sweep_count,  # each of many patches' shots at once (``solver.sweeps``)
         "patches": solver.patches.tree.num_patches if solver.patches is not None else None,
         "shooter_splits": solver.patches.shooter_splits if solver.patches is not None else 0,
-        "hemicubes_rendered": solver.renderer.renders,
+        "hemicubes_rendered": solver.hemicubes_rendered,
         "unshot_fraction": solver.unshot_fraction,
         "hemicube_resolution": scene.solver.resolution,
+        "reflector_hemicube_resolution": (solver.reflector_renderer or solver.renderer).hemicube.resolution,
         "reconstruction": scene.solver.reconstruction,  # how the vertex values were made
         "refine": {"pattern": scene.refine.pattern, "criterion": scene.refine_criterion,
                    "threshold": scene.refine.threshold, "relative": scene.refine.relative,

@@ -222,7 +222,7 @@ def converge(name: str, targets, configuration: str, device: torch.device, max_s
         start = time.perf_counter()
         for target in targets:
             solver.run(max_shots, target)
-            out.append((solver.state.shots, time.perf_counter() - start, solver.renderer.renders))
+            out.append((solver.state.shots, time.perf_counter() - start, solver.hemicubes_rendered))
     finally:
         solver.close()
     patches = solver.patches.tree.num_patches if solver.patches is not None else None

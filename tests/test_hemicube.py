@@ -94,7 +94,7 @@ def test_a_sweep_gives_the_same_numbers_with_and_without_prefetching(monkeypatch
     drawn_when_asked = solve()
     assert prefetched.sweep_count > 1
     assert torch.equal(prefetched.state.radiosity, drawn_when_asked.state.radiosity)
-    assert prefetched.renderer.renders == drawn_when_asked.renderer.renders
+    assert prefetched.hemicubes_rendered == drawn_when_asked.hemicubes_rendered
 
 
 def _local(points):

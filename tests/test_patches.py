@@ -10,6 +10,7 @@ import torch
 import hemirad
 from hemirad.adaptive.shooter_split import point_source_test
 from hemirad.assembly import NEAR_REACH, make_solver
+from hemirad.core.colour import luminance
 from hemirad.core.errors import HemiradWarning
 from hemirad.geometry.patches import build_patches, element_sides, plane_axes
 from hemirad.transport.shooters import PatchShooters, back_face_share, either, eye_points, hidden_centroid_test
@@ -242,7 +243,7 @@ def test_patches_converge_in_fewer_shots_and_renders_than_elements():
         solver = make_solver(scene)
         try:
             solver.run(scene.solver.max_shots, scene.solver.unshot_fraction)
-            counts[size, sweeps] = (solver.state.shots, solver.renderer.renders, solver.sweep_count)
+            counts[size, sweeps] = (solver.state.shots, solver.hemicubes_rendered, solver.sweep_count)
         finally:
             solver.close()
     elements = counts[None, False]
@@ -327,7 +328,7 @@ def test_emitter_eyes_draw_the_penumbra_its_elements_centroids_cannot():
         finally:
             solver.close()
         errors.append(float((solver.state.radiosity[on_floor, 0] / expected - 1)[penumbra].abs().max()))
-        renders.append(solver.renderer.renders)
+        renders.append(solver.hemicubes_rendered)
     # measured: 0.247, 0.097, 0.017
     assert errors[0] > 0.15 and errors[1] < 0.6 * errors[0] and errors[2] < 0.03, errors
     assert renders == [32, 128, 512]
@@ -430,6 +431,45 @@ def test_a_bad_patch_size_is_one_paragraph_naming_the_key(tmp_path):
     bad.write_text(text.replace("solver:\n", "solver:\n  patch_size: -1\n", 1))
     with pytest.raises(SceneError, match=r"solver\.patch_size"):
         hemirad.load_scene(bad)
+
+
+def test_reflectors_draw_at_their_own_resolution_and_power_still_balances():
+    # The open box of the tests above, emitting patches at 64, the others at 32: each node's
+    # hemicube has its resolution, power balances to 1e-9, and the answer is the one with
+    # every node at 64 to within what the coarser pixels of the reflected light move it.
+    mesh = open_box(element_size=0.25)
+    rho, E = random_materials(mesh.num_elements, seed=1, span=0.7, low=0.2, glowing=8)
+    emitted = (E * mesh.areas[:, None]).sum(0)
+    answers = {}
+    for reflectors in (64, 32):
+        solver = patch_solver(mesh, rho, E, 0.5, resolution=64, reflector_resolution=reflectors, sweeps=True)
+        try:
+            state = solver.run(max_shots=100_000, unshot_fraction=1e-4)
+            tree = solver.patches.tree
+            glowing = [int(tree.root[p]) for p in range(tree.num_patches)
+                       if bool((E[solver.patches.members(int(tree.root[p]))] > 0).any())]
+            dark = [int(tree.root[p]) for p in range(tree.num_patches) if int(tree.root[p]) not in glowing]
+            assert glowing and dark
+            assert {solver.render(n).resolution for n in glowing} == {64}
+            assert {solver.render(n).resolution for n in dark} == {reflectors}
+        finally:
+            solver.close()
+        assert_power_balances(state, mesh.areas, rho, E, emitted, rtol=1e-9)
+        answers[reflectors] = luminance(state.radiosity - E)
+    weights = mesh.areas / mesh.areas.sum()
+    difference = float((weights * (answers[32] - answers[64]).abs()).sum() / (weights * answers[64]).sum())
+    assert 0 < difference < 0.01, difference
+
+
+def test_a_bad_reflector_resolution_is_one_paragraph_naming_the_key(tmp_path):
+    from hemirad.core.errors import SceneError
+
+    text = (Path(hemirad.__file__).parent / "scenes" / "floating.yaml").read_text()
+    for value in ("33", "half"):
+        bad = tmp_path / "bad.yaml"
+        bad.write_text(text.replace("solver:\n", f"solver:\n  reflector_resolution: {value}\n", 1))
+        with pytest.raises(SceneError, match=r"solver\.reflector_resolution.*auto or an even whole number"):
+            hemirad.load_scene(bad)
 
 
 def test_sweep_matrices_are_the_same_whatever_batches_their_entries_came_in():

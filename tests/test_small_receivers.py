@@ -270,7 +270,7 @@ def test_kept_rows_are_the_corrected_ones():
     try:
         view = solver.render_and_keep(0)  # as a patch's shooter test renders it
         kept = solver.form_factors_of(0)
-        renders = solver.renderer.renders
+        renders = solver.hemicubes_rendered
         reflector_view = solver.render_and_keep(reflector)
         reflector_kept = solver.form_factors_of(reflector)
     finally:

@@ -81,7 +81,7 @@ def test_kept_form_factor_rows_give_the_rendered_solve_bit_for_bit():
         solver = ProgressiveSolver(mesh, rho, E, 32, cache_bytes=cache_bytes)
         try:
             states.append(solver.run(max_shots=300, unshot_fraction=0.0))
-            renders.append(solver.renderer.renders)
+            renders.append(solver.hemicubes_rendered)
         finally:
             solver.close()
     assert torch.equal(states[0].radiosity, states[1].radiosity) and torch.equal(states[0].unshot, states[1].unshot)

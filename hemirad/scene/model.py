@@ -46,6 +46,23 @@ UNITS = ("radiometric", "photometric")
 SMALL_RECEIVER_CHOICES = ("auto", "pixels", "lamps", "closed_form")
 
 
+#: ``reflector_resolution: auto`` halves ``resolution`` for reflecting nodes down to this.
+REFLECTOR_RESOLUTION_FLOOR = 128
+
+
+def resolved_reflector_resolution(options: "SolverOptions") -> int:
+    """``solver.reflector_resolution`` made definite: ``auto`` is half of ``resolution``, but
+    not under ``REFLECTOR_RESOLUTION_FLOOR`` (nor over ``resolution``). A reflector's light
+    reaches each receiver from hundreds of nodes, whose pixel luck averages out, and is
+    weaker than a lamp's; its hemicube's cost is mostly its pixels. Measured on the furnished
+    room (hemicube 256, 10,164 elements, 185 path-traced points): reflectors at 128, 14.8 and
+    15.3 s against 18.7 and 18.0 s interleaved, median error 2.20% against 2.09%, relative RMS
+    4.66% against 4.56%. At 128 and under, as the bundled scenes ask, nothing changes."""
+    if options.reflector_resolution != "auto":
+        return int(options.reflector_resolution)
+    return min(options.resolution, max(REFLECTOR_RESOLUTION_FLOOR, options.resolution // 2 // 2 * 2))
+
+
 def resolved_small_receivers(small_receivers: str, refined: bool) -> str:
     """``solver.small_receivers`` made definite for a solve on a mesh that is ``refined`` (by
     shots' refinement, or the answer's rounds after the first) or not: ``auto`` is
@@ -181,6 +198,9 @@ class SolverOptions:
     max_shots: int = 100_000  # a guard: a run stops by unshot_fraction first
     unshot_fraction: float = 1e-3  # stop when unshot power / emitted power falls below
     resolution: int = 128  # hemicube top face is resolution x resolution pixels
+    # with patches: the hemicube resolution of nodes that emit nothing; auto:
+    # ``resolved_reflector_resolution``
+    reflector_resolution: int | str = "auto"
     ambient: bool = True  # add Cohen et al.'s ambient term to the displayed radiosity
     device: str = "cpu"  # where the torch work runs: one of hemirad.core.device.DEVICE_NAMES
     # Patches that shoot for their elements: "auto" (about 2 x 2 elements), a side length,

@@ -18,8 +18,8 @@ MAX_CACHE_MB = 1e7
 MAX_ROUND_GROWTH = 100.0
 
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
-_SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "ambient", "device", "patch_size", "overshoot", "sweeps",
-                "shooter_split", "emitter_eyes", "cache_mb", "small_receivers", "error_samples", "picture_error_samples",
+_SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "reflector_resolution", "ambient", "device",
+                "patch_size", "overshoot", "sweeps", "shooter_split", "emitter_eyes", "cache_mb", "small_receivers", "error_samples", "picture_error_samples",
                 "reconstruction")
 _MESHING_KEYS = ("contacts", "intersections")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
@@ -68,6 +68,12 @@ def read_solver(check: Checker, v) -> SolverOptions:
             check.fail("solver.resolution", "an even whole number >= 8", r,
                        "The hemicube's side faces are resolution / 2 pixels high.")
         opts.resolution = r
+    if "reflector_resolution" in m and m["reflector_resolution"] != "auto":
+        r = check.integer(m["reflector_resolution"], "solver.reflector_resolution", "auto or an even whole number >= 8", 8)
+        if r % 2:
+            check.fail("solver.reflector_resolution", "auto or an even whole number >= 8", r,
+                       "The hemicube's side faces are resolution / 2 pixels high.")
+        opts.reflector_resolution = r
     if "ambient" in m:
         opts.ambient = check.boolean(m["ambient"], "solver.ambient")
     if "device" in m:

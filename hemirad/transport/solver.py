@@ -40,6 +40,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 21: with patches, nodes that emit nothing draw at ``reflector_resolution`` (auto: half
+#: of a resolution over 128);
 #: 20: a sweep group's small-receiver rows are made together (the last bits of atan2);
 #: 19: near fields take a small receiver's factor from its points (by reciprocity), and
 #: Lambert's factor to a triangle wholly above its point sums its three edges alone;
@@ -55,7 +57,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 20
+ARITHMETIC = 21
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
@@ -154,6 +156,8 @@ class ProgressiveSolver:
         mesh: the initial elements.
         reflectance, emission: (T, 3) per element.
         resolution: hemicube resolution R.
+        reflector_resolution: with patches, the resolution of the nodes none of whose elements
+            emits (``scene.model.resolved_reflector_resolution``); None: ``resolution``.
         refiner: splits receivers during shots (``ShotRefiner``; docs/DESIGN.md §3); None
             for a fixed mesh.
         cull: per-face frustum culling in the hemicube (the same numbers, drawn faster).
@@ -197,7 +201,8 @@ class ProgressiveSolver:
                  patches: PatchShooters | None = None, overshoot: bool = False, near_reach: float = 0.0,
                  near_totals: str = "hemicube",
                  refine_shots: int | None = None, device: torch.device | str = "cpu",
-                 small_receivers: str = "pixels", refined_small_receivers: str | None = None, sweeps: bool = False):
+                 small_receivers: str = "pixels", refined_small_receivers: str | None = None, sweeps: bool = False,
+                 reflector_resolution: int | None = None):
         self.device = torch.device(device)
         mesh = mesh.to(self.device)
         reflectance, emission = reflectance.to(self.device), emission.to(self.device)
@@ -207,6 +212,9 @@ class ProgressiveSolver:
         self.emitted_power = (emission * self.areas[:, None]).sum(0)  # (3,)
         self.profiler = Profiler(PHASES)
         self.renderer = HemicubeRenderer(mesh, resolution, cull, self.device, self.profiler)
+        # with patches, the nodes that emit nothing draw here (``reflector_resolution``)
+        self.reflector_renderer = (HemicubeRenderer(mesh, reflector_resolution, cull, self.device, self.profiler)
+                                   if reflector_resolution not in (None, resolution) else None)
         refined_small_receivers = small_receivers if refined_small_receivers is None else refined_small_receivers
         for choice in (small_receivers, refined_small_receivers):
             if choice not in SMALL_RECEIVER_CHOICES:
@@ -230,7 +238,27 @@ class ProgressiveSolver:
             self.use_patches(patches)
 
     def close(self) -> None:
-        self.renderer.close()
+        for renderer in self._renderers:
+            renderer.close()
+
+    @property
+    def _renderers(self) -> list[HemicubeRenderer]:
+        return [self.renderer] + ([self.reflector_renderer] if self.reflector_renderer is not None else [])
+
+    @property
+    def hemicubes_rendered(self) -> int:
+        return sum(renderer.renders for renderer in self._renderers)
+
+    def _renderer_of(self, node: int) -> HemicubeRenderer:
+        """Where ``node`` (of the patches' trees) draws: at ``reflector_resolution`` when none of
+        its elements emits."""
+        if self.reflector_renderer is None or bool(self._emitting(node).any()):
+            return self.renderer
+        return self.reflector_renderer
+
+    def _set_geometry(self, mesh: Mesh) -> None:
+        for renderer in self._renderers:
+            renderer.set_geometry(mesh)
 
     def use_patches(self, patches: PatchShooters) -> None:
         """Shoot with ``patches``, built on the current mesh (whose elements are its leaves)."""
@@ -275,7 +303,7 @@ class ProgressiveSolver:
         trees) sees on the current mesh, with F_sj."""
         if self.patches is None:
             return self.renderer.render(shooter)
-        return self.renderer.render_at(*self._placement(shooter))
+        return self._renderer_of(shooter).render_at(*self._placement(shooter))
 
     def _placement(self, node: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Where a node of the patches' trees renders its hemicube: ``render_at``'s point,
@@ -324,7 +352,7 @@ class ProgressiveSolver:
             rows.inherit(parent) for rows in self._per_element)
         self.areas = mesh.areas
         self.small_receivers = self.refined_small_receivers
-        self.renderer.set_geometry(mesh)
+        self._set_geometry(mesh)
         self._forget_kept_light()
         if self.patches is not None:
             self.patches.inherit(parent)
@@ -467,7 +495,8 @@ class ProgressiveSolver:
         """Start drawing the hemicube of ``patch``'s root if its cut will render it (the first
         time it shoots), so that the rasteriser works while this thread does."""
         if patch not in self.patches.cuts:
-            self.renderer.prefetch_at(*self._placement(int(self.patches.tree.root[patch])))
+            root = int(self.patches.tree.root[patch])
+            self._renderer_of(root).prefetch_at(*self._placement(root))
 
     def _shot_form_factors(self, shooter: int, shot_power: torch.Tensor) -> torch.Tensor:
         """(T,) F_sj of a shot of ``shot_power`` (3,) from ``shooter``: its kept or rendered row,
@@ -775,5 +804,5 @@ class ProgressiveSolver:
         if self.patches is not None:
             self.patches.load_state_dict(state["patches"], T)
         self._forget_kept_light()
-        self.renderer.set_geometry(mesh)
+        self._set_geometry(mesh)
         self.profiler.load_state_dict(timings)
