@@ -459,6 +459,13 @@ def test_reflectors_draw_at_their_own_resolution_and_power_still_balances():
     weights = mesh.areas / mesh.areas.sum()
     difference = float((weights * (answers[32] - answers[64]).abs()).sum() / (weights * answers[64]).sum())
     assert 0 < difference < 0.01, difference
+    # where reflectors' receivers under a pixel get closed forms (refined meshes), all draw at 64
+    solver = patch_solver(mesh, rho, E, 0.5, resolution=64, reflector_resolution=32, small_receivers="closed_form")
+    try:
+        tree = solver.patches.tree
+        assert {solver.render(int(tree.root[p])).resolution for p in range(tree.num_patches)} == {64}
+    finally:
+        solver.close()
 
 
 def test_a_bad_reflector_resolution_is_one_paragraph_naming_the_key(tmp_path):

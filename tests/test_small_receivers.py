@@ -329,17 +329,20 @@ def test_the_command_line_option_sets_it_and_refuses_other_values(capsys):
     assert exit_code.value.code == 2 and "closed_form" in capsys.readouterr().err
 
 
-def test_rows_made_together_are_the_rows_made_alone():
+@pytest.mark.parametrize("resolutions", [(R,) * 5, (R, R // 2, R, R // 2, R // 2)])
+def test_rows_made_together_are_the_rows_made_alone(resolutions):
     # A sweep makes its group's rows in one pass; each must be what its view gives alone (a
     # row dropped from the cache and made again gets the same), to the last bits that the
-    # vectorised atan2 rounds by its place in the batch. Cornell box: the blocks hide
-    # receivers from some eyes, so the shadow-map test decides.
+    # vectorised atan2 rounds by its place in the batch, also where its lamps and reflectors
+    # draw at two resolutions. Cornell box: the blocks hide receivers from some eyes, so the
+    # shadow-map test decides.
     mesh = build_mesh(hemirad.load_scene("cornell_box"))
-    renderer = HemicubeRenderer(mesh, R)
+    renderers = {r: HemicubeRenderer(mesh, r) for r in set(resolutions)}
     try:
-        views = [renderer.render(s) for s in (0, 17, 400, 1311, 2600)]
+        views = [renderers[r].render(s) for s, r in zip((0, 17, 400, 1311, 2600), resolutions)]
     finally:
-        renderer.close()
+        for renderer in renderers.values():
+            renderer.close()
     limits = [MAX_PIXELS, BOUNCE_MAX_PIXELS, MAX_PIXELS, 2.5, BOUNCE_MAX_PIXELS]
     together = small_receiver_rows(views, mesh.corners, mesh.areas, limits)
     alone = [small_receiver_form_factors(v, mesh.corners, mesh.areas, limit) for v, limit in zip(views, limits)]

@@ -30,7 +30,7 @@ total when a few are corrected.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 
@@ -221,7 +221,9 @@ def _sample_weights(views: Sequence[HemicubeView], view_of: torch.Tensor, points
     frames = torch.stack([view.frame for view in views]).index_select(0, view_of)  # (N, 3, 3)
     ray = points - eyes  # (N, 3) from the eye to the point
     local = row_sums(ray[:, None, :] * frames)  # (N, 3) along t, b and n
-    pixels = atlas_pixels(local, first.resolution)
+    resolutions = [view.resolution for view in views]  # a sweep group's lamps and reflectors may differ
+    pixels = _per_resolution(view_of, resolutions, lambda R, rows: atlas_pixels(_rows(local, rows), R),
+                             (len(local),), torch.int64)
     # what each sample's pixel sees, view by view (the atlases stay where they are)
     parts = pixels.split(torch.bincount(view_of, minlength=len(views)).tolist())
     seen = torch.cat([view.element.index_select(0, part) for view, part in zip(views, parts)])
@@ -242,13 +244,36 @@ def _sample_weights(views: Sequence[HemicubeView], view_of: torch.Tensor, points
     d_j = row_sums((first.points.index_select(0, j) - eye) * normal_j)  # < 0: the eye is in front of j
     # where the pixel's own ray (its centre's direction, in the world) meets k's plane,
     # along n_j from the eye
-    direction = pixel_directions(first.resolution, points.device).index_select(1, pixels.index_select(0, other)).T
+    pixels = pixels.index_select(0, other)
+    direction = _per_resolution(view_of.index_select(0, other), resolutions, lambda R, rows: pixel_directions(
+        R, points.device).index_select(1, _rows(pixels, rows)).T, (len(other), 3), points.dtype)
     axes = frames.index_select(0, other)  # (M, 3, 3): rows t, b, n in the world
     direction = direction[:, 0:1] * axes[:, 0] + direction[:, 1:2] * axes[:, 1] + direction[:, 2:3] * axes[:, 2]
     seen_at = d_k / row_sums(direction * normal_k) * row_sums(direction * normal_j)
     in_front = seen_at - d_j > _TOLERANCE * d_j.abs()
     hidden = other.index_select(0, flatnonzero(crosses & in_front))
     return weight, weight.index_fill(0, hidden, 0.0)
+
+
+def _per_resolution(view_of: torch.Tensor, resolutions: Sequence[int], make: Callable, shape: tuple,
+                    dtype: torch.dtype) -> torch.Tensor:
+    """``make(R, rows)`` for the samples (``view_of`` (N,): each one's view) of the views of
+    each resolution R in ``resolutions`` (one per view), ``rows`` (n,) those samples, put
+    together into a tensor of ``shape`` (N, ...); one call, ``rows`` None, where the views
+    share one resolution."""
+    distinct = sorted(set(resolutions))
+    if len(distinct) == 1:
+        return make(distinct[0], None)
+    of = torch.tensor(resolutions, device=view_of.device).index_select(0, view_of)
+    out = torch.empty(shape, dtype=dtype, device=view_of.device)
+    for R in distinct:
+        rows = flatnonzero(of == R)
+        out.index_copy_(0, rows, make(R, rows))
+    return out
+
+
+def _rows(x: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
+    return x if rows is None else x.index_select(0, rows)
 
 
 def small_receiver_rows(views: Sequence[HemicubeView], corners: torch.Tensor, areas: torch.Tensor,
