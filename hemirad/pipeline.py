@@ -726,7 +726,7 @@ def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_element
         "hemicubes_rendered": solver.hemicubes_rendered,
         "unshot_fraction": solver.unshot_fraction,
         "hemicube_resolution": scene.solver.resolution,
-        "reflector_hemicube_resolution": (solver.reflector_renderer or solver.renderer).hemicube.resolution,
+        "reflector_hemicube_resolution": solver.reflector_hemicube_resolution,
         "reconstruction": scene.solver.reconstruction,  # how the vertex values were made
         "refine": {"pattern": scene.refine.pattern, "criterion": scene.refine_criterion,
                    "threshold": scene.refine.threshold, "relative": scene.refine.relative,

@@ -19,8 +19,8 @@ MAX_ROUND_GROWTH = 100.0
 
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "reflector_resolution", "ambient", "device",
-                "patch_size", "overshoot", "sweeps", "shooter_split", "emitter_eyes", "cache_mb", "small_receivers", "error_samples", "picture_error_samples",
-                "reconstruction")
+                "patch_size", "overshoot", "sweeps", "shooter_split", "emitter_eyes", "cache_mb", "small_receivers",
+                "error_samples", "picture_error_samples", "reconstruction")
 _MESHING_KEYS = ("contacts", "intersections")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
                 "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds", "round_growth")
@@ -63,17 +63,11 @@ def read_solver(check: Checker, v) -> SolverOptions:
         opts.unshot_fraction = check.bounded(m["unshot_fraction"], "solver.unshot_fraction", "a number in [0, 1)",
                                              lambda x: 0 <= x < 1)
     if "resolution" in m:
-        r = check.integer(m["resolution"], "solver.resolution", "an even whole number >= 8", 8)
-        if r % 2:
-            check.fail("solver.resolution", "an even whole number >= 8", r,
-                       "The hemicube's side faces are resolution / 2 pixels high.")
-        opts.resolution = r
+        opts.resolution = _hemicube_resolution(check, m["resolution"], "solver.resolution",
+                                               "an even whole number >= 8")
     if "reflector_resolution" in m and m["reflector_resolution"] != "auto":
-        r = check.integer(m["reflector_resolution"], "solver.reflector_resolution", "auto or an even whole number >= 8", 8)
-        if r % 2:
-            check.fail("solver.reflector_resolution", "auto or an even whole number >= 8", r,
-                       "The hemicube's side faces are resolution / 2 pixels high.")
-        opts.reflector_resolution = r
+        opts.reflector_resolution = _hemicube_resolution(check, m["reflector_resolution"], "solver.reflector_resolution",
+                                                         "auto or an even whole number >= 8")
     if "ambient" in m:
         opts.ambient = check.boolean(m["ambient"], "solver.ambient")
     if "device" in m:
@@ -108,6 +102,13 @@ def read_solver(check: Checker, v) -> SolverOptions:
         opts.picture_error_samples = check.integer(m["picture_error_samples"], "solver.picture_error_samples",
                                                    "a whole number >= 0", 0)
     return opts
+
+
+def _hemicube_resolution(check: Checker, value, key: str, expected: str) -> int:
+    r = check.integer(value, key, expected, 8)
+    if r % 2:
+        check.fail(key, expected, r, "The hemicube's side faces are resolution / 2 pixels high.")
+    return r
 
 
 def read_meshing(check: Checker, v) -> MeshingOptions:

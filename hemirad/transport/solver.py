@@ -249,6 +249,13 @@ class ProgressiveSolver:
     def hemicubes_rendered(self) -> int:
         return sum(renderer.renders for renderer in self._renderers)
 
+    @property
+    def reflector_hemicube_resolution(self) -> int:
+        """The resolution the reflecting nodes drew at: ``reflector_resolution`` where any did
+        (``_renderer_of``), else that of every node."""
+        drew = self.reflector_renderer is not None and self.reflector_renderer.renders > 0
+        return (self.reflector_renderer if drew else self.renderer).hemicube.resolution
+
     def _renderer_of(self, node: int) -> HemicubeRenderer:
         """Where ``node`` (of the patches' trees) draws: at ``reflector_resolution`` when none of
         its elements emits and its receivers under a pixel get their pixel sums (not
