@@ -185,6 +185,35 @@ def test_triangle_to_triangles_reproduces_the_rectangles_closed_forms(points, to
         assert _rectangle_factor(source, facing, points) == pytest.approx(exact, rel=apart)
 
 
+def test_one_rule_over_each_whole_edge_serves_pairs_apart():
+    # The near field's pairs at least PIECES_GAP source sides apart take APART_POINTS along
+    # each whole source edge (no kink for the pieces to resolve): against the closed form of
+    # facing squares and against 8 points a piece on random pairs that far apart, including
+    # pairs that straddle each other's planes (a receiver near a shooter's horizon).
+    from hemirad.transport.nearfield import APART_POINTS, PIECES_GAP, _sides_centroids_radii
+
+    for c in (1.5, 2.0, 4.0):
+        source = quad([0, 0, 0], [1, 0, 0], [0, 1, 0])
+        facing = quad([0, 0, c], [0, 1, 0], [1, 0, 0])
+        halves = [[0, 1, 2], [0, 2, 3]]
+        s = torch.stack([source[h] for h in halves]).repeat_interleave(2, 0)
+        r = torch.stack([facing[h] for h in halves]).repeat(2, 1, 1)
+        F = float(triangle_to_triangles(s, r, APART_POINTS, pieces=False).sum() / 2)
+        assert F == pytest.approx(float(parallel_rectangles(1, 1, c)), rel=1e-5)
+    g = torch.Generator().manual_seed(11)
+    sources = torch.rand(400, 3, 3, generator=g, dtype=torch.float64)
+    receivers = torch.rand(400, 3, 3, generator=g, dtype=torch.float64) + 3.0 * torch.nn.functional.normalize(
+        torch.randn(400, 1, 3, generator=g, dtype=torch.float64), dim=2)
+    side, centre, radius = _sides_centroids_radii(sources)
+    _, receiver_centre, receiver_radius = _sides_centroids_radii(receivers)
+    apart = (receiver_centre - centre).norm(dim=1) - radius - receiver_radius >= PIECES_GAP * side
+    sources, receivers = sources[apart], receivers[apart]
+    pieces = triangle_to_triangles(sources, receivers, 8)
+    assert int((pieces > 1e-4).sum()) > 50  # enough pairs that see each other
+    torch.testing.assert_close(triangle_to_triangles(sources, receivers, APART_POINTS, pieces=False), pieces,
+                               rtol=2e-3, atol=1e-9)
+
+
 def test_triangle_to_triangles_is_right_for_a_small_receiver_along_part_of_a_shared_edge():
     # A floor tile (a x w) in the corner where a wall strip (h x l, l >> a) meets the floor,
     # sharing the first a of the wall's foot: the shape refinement makes along a wall. With

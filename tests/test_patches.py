@@ -519,14 +519,13 @@ def test_near_fields_made_together_are_each_shooters_own(totals, monkeypatch):
                 shooters.append(solver._near_shooter(node, solver.form_factors_of(node), None))
         alone = [nearfield.near_fields(solver.mesh, [s], NEAR_REACH, totals)[0] for s in shooters]
         monkeypatch.setattr(nearfield, "PAIR_CHUNK", 2000)  # runs of several shooters, and of one
-        for together in (nearfield.near_fields(solver.mesh, shooters, NEAR_REACH, totals),
-                         nearfield.run_to_end(nearfield.near_field_steps(solver.mesh, shooters, NEAR_REACH, totals))):
-            assert len(together) == len(shooters)
-            for one, many in zip(alone, together):
-                assert torch.equal(one.rows, many.rows)
-                assert one.weights.shape == many.weights.shape
-                torch.testing.assert_close(many.weights, one.weights, rtol=1e-12, atol=1e-18)
-                torch.testing.assert_close(many.far_scale, one.far_scale, rtol=1e-12, atol=0.0)
+        together = nearfield.near_fields(solver.mesh, shooters, NEAR_REACH, totals)
+        assert len(together) == len(shooters)
+        for one, many in zip(alone, together):
+            assert torch.equal(one.rows, many.rows)
+            assert one.weights.shape == many.weights.shape
+            torch.testing.assert_close(many.weights, one.weights, rtol=1e-12, atol=1e-18)
+            torch.testing.assert_close(many.far_scale, one.far_scale, rtol=1e-12, atol=0.0)
         assert sum(len(n.rows) for n in alone) > 20 * len(shooters)  # not a vacuous comparison
     finally:
         solver.close()

@@ -277,7 +277,7 @@ class Hemicube:
         ids, ranges = self._submitted
         self._submitted = None
         start = time.perf_counter()
-        self.ctx.finish()
+        _finish(self.ctx)
         mid = time.perf_counter()
         self.fbo.read_into(self._drawn, components=1, dtype="u4")
         self.drawn_triangles = sum(count for _, count in ranges)
@@ -290,13 +290,15 @@ class Hemicube:
         return element, front
 
 
-@functools.lru_cache(maxsize=1)
-def _gl_flush() -> Callable[[], None] | None:
-    """glFlush, which moderngl does not expose, from the process's GL dispatch library
-    (the one EGL's current context answers); None where there is none to load."""
-    for name in ("libOpenGL.so.0", "libGL.so.1"):
+@functools.lru_cache(maxsize=2)
+def _gl_function(name: str) -> Callable[[], None] | None:
+    """``name`` (glFlush, glFinish) from the process's GL dispatch library (the one EGL's
+    current context answers); None where there is none to load. Called through ctypes, it
+    lets go of the interpreter while it runs, which moderngl's calls do not: another thread
+    (the solver's worker) runs Python while this one waits for the rasteriser."""
+    for library in ("libOpenGL.so.0", "libGL.so.1"):
         try:
-            return ctypes.CDLL(name).glFlush
+            return getattr(ctypes.CDLL(library), name)
         except (OSError, AttributeError):
             continue
     return None
@@ -305,9 +307,19 @@ def _gl_flush() -> Callable[[], None] | None:
 def _flush() -> None:
     """Hand the drawn commands to the driver now: llvmpipe rasterises a frame's bins only when
     it is flushed, which ``finish`` (or a read) would otherwise do, waiting."""
-    flush = _gl_flush()
+    flush = _gl_function("glFlush")
     if flush is not None:
         flush()
+
+
+def _finish(ctx: moderngl.Context) -> None:
+    """Wait for the drawn commands to complete, letting other threads run meanwhile
+    (``_gl_function``)."""
+    finish = _gl_function("glFinish")
+    if finish is not None:
+        finish()
+    else:
+        ctx.finish()
 
 
 def _write(buffer: moderngl.Buffer, data: np.ndarray) -> None:

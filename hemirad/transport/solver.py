@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import time
 import warnings
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable, Generator, Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 import torch
@@ -24,13 +25,12 @@ from hemirad.scene.model import SMALL_RECEIVER_CHOICES
 from hemirad.transport.gl import GLContext
 from hemirad.transport.hemicube import OFF_AXIS_TANGENT
 from hemirad.transport.nearfield import TOTALS as NEAR_TOTALS
-from hemirad.transport.nearfield import (NearReceivers, NearShooter, incident_power, near_field_steps, near_fields,
-                                        run_to_end)
+from hemirad.transport.nearfield import NearReceivers, NearShooter, incident_power, near_fields
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
 from hemirad.transport.shooters import PatchShooters, eye_points
 from hemirad.transport.smallreceivers import BOUNCE_MAX_PIXELS, MAX_PIXELS, small_receiver_form_factors, small_receiver_rows
-from hemirad.transport.sweep import SweepTransport
+from hemirad.transport.sweep import SweepTransport, group_light
 from hemirad.transport.view import HemicubeView
 
 # The phases a solve's time is reported in (``ProgressiveSolver.timings``, stats.json).
@@ -40,6 +40,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 22: near-field pairs half a source side apart or more take one Gauss rule over each
+#: whole source edge;
 #: 21: with patches, nodes that emit nothing draw at ``reflector_resolution`` (auto: half
 #: of a resolution over 128);
 #: 20: a sweep group's small-receiver rows are made together (the last bits of atan2);
@@ -57,7 +59,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 21
+ARITHMETIC = 22
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
@@ -65,8 +67,6 @@ DEFAULT_CACHE_BYTES = 256 << 20
 #: a group, in patch index order), keeping their hemicubes' views until then (1.7 MB each at
 #: resolution 256; two groups' at most).
 NEAR_BATCH = 32
-#: A sweep group's rows are made this many nodes at a time, a step each (``_group_rows``).
-ROW_BATCH = 8
 
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
@@ -234,12 +234,16 @@ class ProgressiveSolver:
         self.near_reach, self.near_totals = near_reach, near_totals
         self._near: dict[int, NearReceivers] = {}
         self._views: dict[int, HemicubeView] = {}  # rendered for shooters whose near field is not made yet
+        self._emitters: dict[int, tuple[bool, bool]] = {}  # ``_emitting``
+        self._worker: ThreadPoolExecutor | None = None  # makes sweep groups' light (``_make_group``)
         if patches is not None:
             self.use_patches(patches)
 
     def close(self) -> None:
         for renderer in self._renderers:
             renderer.close()
+        if self._worker is not None:
+            self._worker.shutdown()
 
     @property
     def _renderers(self) -> list[HemicubeRenderer]:
@@ -265,7 +269,7 @@ class ProgressiveSolver:
         split to 91,424 elements against 89,333, and took 45.3 s against 44.8 s once its
         refining shots drew at 256."""
         if (self.reflector_renderer is None or self.small_receivers == "closed_form"
-                or bool(self._emitting(node).any())):
+                or self._emitting(node)[0]):
             return self.renderer
         return self.reflector_renderer
 
@@ -285,6 +289,7 @@ class ProgressiveSolver:
         self.rows.clear()
         self._near.clear()
         self._views.clear()
+        self._emitters.clear()
         self._transport = None
 
     def restart(self, patches: PatchShooters) -> None:
@@ -459,19 +464,20 @@ class ProgressiveSolver:
         # every group that holds one that shoots): their near fields are made together, and a
         # group is the same whichever sweep first needs it, so the numbers do not depend on
         # the sweep (a resumed run's first sweep makes the near fields of every group it needs).
-        # A group's near fields are made a step at a time while the next group's hemicubes are
-        # drawn (the rasteriser's threads work while this one does).
+        # A group's rows and near fields are made on a worker thread while this one draws the
+        # next group's hemicubes (``_make_group``): torch's kernels let go of the interpreter,
+        # and the near fields' contour integrals are mostly kernel.
         groups = sorted({patch // NEAR_BATCH for patch in shooting.tolist()} - transport.groups)
         order = [patch for g in groups for patch in range(g * NEAR_BATCH, min((g + 1) * NEAR_BATCH, tree.num_patches))]
         new: dict[int, tuple[torch.Tensor, HemicubeView | None]] = {}  # the group's nodes: (F, view)
-        making = None  # the group before's: (its nodes, its near fields' steps)
+        making = None  # the group before's: (its nodes, what the worker makes of them)
         for i, patch in enumerate(order):
             if i + 1 < len(order):  # drawn while this patch's hemicube is decoded and used
                 self._prefetch(order[i + 1])
             nodes = patches.cut(patch, self.render_and_keep, self.mesh.corners)
-            if making is not None and self._step(making):
-                making = None
-            for node in nodes:  # rows not kept are made with the group's (``_group_rows``)
+            if making is not None and making[1].done():
+                making = self._join_group(making)
+            for node in nodes:  # rows not kept are made with the group's (``_make_group``)
                 F, view = self.rows.get(node, self.mesh.num_elements), self._views.pop(node, None)
                 new[node] = (F, self.render(node) if F is None and view is None else view)
             # the views of nodes that split into their children: each holds a hemicube's pixels
@@ -480,10 +486,10 @@ class ProgressiveSolver:
                 continue
             transport.groups.add(patch // NEAR_BATCH)
             if making is not None:
-                self._step(making, to_end=True)
-            making, new = (new, self._group_steps(new)), {}
+                self._join_group(making)
+            making, new = (new, self._make_group(new)), {}
             if i + 1 == len(order):
-                self._step(making, to_end=True)
+                making = self._join_group(making)
             if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
                 warnings.warn(f"the light kept for sweeps outgrew solver.cache_mb ({self.rows.budget_bytes >> 20} MB) "
                               f"at {self.mesh.num_elements} elements: from here patches shoot one at a time, drawing "
@@ -559,14 +565,17 @@ class ProgressiveSolver:
     def _emits(self, shooter: int) -> bool:
         """Whether an element of ``shooter`` emits, as ``shot_row`` asks it (pixel sums need
         not know, and are not asked)."""
-        return self.small_receivers != "pixels" and bool(self._emitting(shooter).any())
+        return self.small_receivers != "pixels" and self._emitting(shooter)[0]
 
-    def _emitting(self, shooter: int) -> torch.Tensor:
-        """(K,) bool: which elements of ``shooter`` (a node; without patches, an element) emit."""
-        members = self.shooter_elements(shooter)
-        if self.patches is None:
-            return (self.emission[members] > 0).any()[None]
-        return (self.emission.index_select(0, members) > 0).any(1)
+    def _emitting(self, shooter: int) -> tuple[bool, bool]:
+        """Whether any, and whether all, of the elements of ``shooter`` (a node; without
+        patches, an element) emit; kept per node while the mesh is unchanged (a sweep asks
+        each node several times)."""
+        known = self._emitters.get(shooter)
+        if known is None:
+            emits = (self.emission[self.shooter_elements(shooter)].reshape(-1, 3) > 0).any(1)
+            known = self._emitters[shooter] = (bool(emits.any()), bool(emits.all()))
+        return known
 
     def _eyes(self, shooter: int) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Where a node whose elements all emit shoots from, with the patches' ``eye_level``:
@@ -574,7 +583,7 @@ class ProgressiveSolver:
         area; None for any other node (it shoots from its centroid)."""
         if self.patches is None or self.patches.eye_level == 0:
             return None
-        if not bool(self._emitting(shooter).all()):
+        if not self._emitting(shooter)[1]:
             return None
         members = self.patches.members(shooter)
         per_element = 4 ** self.patches.eye_level
@@ -582,18 +591,15 @@ class ProgressiveSolver:
         weights = (areas / (areas.sum() * per_element)).repeat_interleave(per_element)
         return eye_points(self.mesh.corners_of(members), self.patches.eye_level), weights
 
-    def _group_steps(self, nodes: dict[int, tuple[torch.Tensor | None, HemicubeView]]) -> Generator:
-        """A sweep group's rows (``_group_rows``), then its near fields (``_near_field_steps``),
-        in steps made while the next group's hemicubes are drawn."""
-        yield from self._group_rows(nodes)
-        yield from self._near_field_steps(nodes)
-
-    def _group_rows(self, nodes: dict[int, tuple[torch.Tensor | None, HemicubeView]]) -> Generator:
-        """Fill in, and keep, the rows (``node_row``) of the ``nodes`` (node -> (row or None,
-        view)) that have none: those of small receivers ``ROW_BATCH`` nodes in a pass
-        (``small_receiver_rows``; a reflecting node's few receivers under a pixel cost the
-        torch calls, not the arithmetic), each as made alone up to the last bits of the closed
-        forms' ``atan2``; a step a pass."""
+    def _make_group(self, nodes: dict[int, tuple[torch.Tensor | None, HemicubeView]]) -> Future:
+        """Start making a sweep group's rows and near fields: the ``nodes`` (node -> (row or
+        None, view)) without a row get one (``node_row``); those of small receivers are made
+        ``ROW_BATCH`` nodes in a pass (``small_receiver_rows``: a reflecting node's few
+        receivers under a pixel cost the torch calls, not the arithmetic), each as made alone
+        up to the last bits of the closed forms' ``atan2``. Rows that draw (emitters' eyes)
+        and pixel sums are made here; the small receivers' rows and the near fields on the
+        worker thread (``group_light``), which touches no state of the solver: the future's
+        result is taken in by ``_join_group``."""
         batch = {}  # node -> (view, pixel limit)
         for node, (F, view) in nodes.items():
             if F is not None:
@@ -609,16 +615,26 @@ class ProgressiveSolver:
                 F = self.shot_row(view, None, emits)  # pixel sums
             self.rows.put(node, F)
             nodes[node] = (F, view)
-        batch = list(batch.items())
-        for start in range(0, len(batch), ROW_BATCH):
-            part = batch[start:start + ROW_BATCH]
-            yield
-            with self.profiler.phase("form_factors"):
-                rows = small_receiver_rows([view for _, (view, _) in part], self.mesh.corners, self.mesh.areas,
-                                           [limit for _, (_, limit) in part])
-            for (node, (view, _)), F in zip(part, rows):
+        shooters = [self._near_shooter(node, F, view) for node, (F, view) in nodes.items()] if self.near_reach > 0 else []
+        if self._worker is None:
+            self._worker = ThreadPoolExecutor(1, thread_name_prefix="hemirad-sweep")
+        return self._worker.submit(group_light, self.mesh, batch, list(nodes), shooters, self.near_reach,
+                                   self.near_totals)
+
+    def _join_group(self, making: tuple[dict, Future]) -> None:
+        """Take in what the worker made of a sweep group (``_make_group``: its nodes, as the
+        sweep gathered them, and the future), waiting for it if need be, and add the nodes to
+        the sweeps' kept light."""
+        nodes, future = making
+        with self.profiler.phase("update"):
+            rows, near = future.result()
+            for node, F in rows.items():
                 self.rows.put(node, F)
-                nodes[node] = (F, view)
+                nodes[node] = (F, nodes[node][1])
+            self._near.update(near)
+            for node, (F, _) in nodes.items():
+                self._transport.add(node, self.patches.bounds(node), F, self._near.get(node),
+                                    self.patches.sources(node)[1])
 
     def _small_receiver_limit(self, emits: bool) -> float | None:
         """The footprint in pixels under which a shooter's receivers get their factors from
@@ -667,45 +683,16 @@ class ProgressiveSolver:
             return None
         if among is None:
             if shooter not in self._near:
-                run_to_end(self._near_field_steps({shooter: (F, view)}))
+                self._near[shooter] = near_fields(self.mesh, [self._near_shooter(shooter, F, view)], self.near_reach,
+                                                  self.near_totals)[0]
             return self._near[shooter]
         return near_fields(self.mesh, [self._near_shooter(shooter, F, view)], self.near_reach, self.near_totals,
                            among)[0]
 
-    def _step(self, making: tuple[dict, Generator], to_end: bool = False) -> bool:
-        """Make the next part of a group's near fields (``making``: its nodes, as the sweep
-        gathered them, and ``_near_field_steps``), or with ``to_end`` the rest; once made, add
-        the nodes to the sweeps' kept light. Returns whether they are."""
-        nodes, steps = making
-        with self.profiler.phase("update"):
-            if to_end:
-                run_to_end(steps)
-            else:
-                try:
-                    next(steps)
-                    return False
-                except StopIteration:
-                    pass
-            for node, (F, _) in nodes.items():
-                self._transport.add(node, self.patches.bounds(node), F, self._near.get(node),
-                                    self.patches.sources(node)[1])
-        return True
-
-    def _near_field_steps(self, shooters: dict[int, tuple[torch.Tensor, HemicubeView | None]]) -> Generator:
-        """``near_receivers_of`` each shooter of ``shooters``, given its row F (T,) and the view
-        that gave it (None: the one kept for it, else a new render), made together, in steps
-        (``nearfield.near_field_steps``), and kept. Those kept already are made again with the
-        others: the numbers of a near field made with others can differ from its own in the
-        last bit (vectorised ``log`` and ``atan2`` round otherwise than the scalar ones a
-        batch's tail gets), and a group must give the same in a resumed run."""
-        if self.near_reach > 0 and shooters:
-            made = yield from near_field_steps(self.mesh, [self._near_shooter(s, *shooters[s]) for s in shooters],
-                                               self.near_reach, self.near_totals)
-            self._near.update(zip(shooters, made))
-
-    def _near_shooter(self, shooter: int, F: torch.Tensor, view: HemicubeView | None) -> NearShooter:
+    def _near_shooter(self, shooter: int, F: torch.Tensor | None, view: HemicubeView | None) -> NearShooter:
         """What ``nearfield`` needs of ``shooter`` (an element, or a node of the patches) shooting
-        the row F (T,) seen in ``view`` (None: the one kept for it, else a new render)."""
+        the row F (T,) seen in ``view`` (None: the one kept for it, else a new render); F None:
+        to be filled in (``sweep.group_light``)."""
         if view is None:
             view = self._views.pop(shooter, None)
         if view is None:

@@ -19,16 +19,21 @@ sum over them is the same bit for bit in a run resumed from a checkpoint.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
 from hemirad.core.fastops import flatnonzero
-from hemirad.transport.nearfield import NearReceivers
+from hemirad.geometry.mesh import Mesh
+from hemirad.transport.nearfield import NearReceivers, NearShooter, near_fields
+from hemirad.transport.smallreceivers import small_receiver_rows
+from hemirad.transport.view import HemicubeView
 
 # Bytes an entry of the matrices costs: an int32 column index and a float64 value (int32
 # indices: a third less memory than int64 before a sweep outgrows ``solver.cache_mb``).
 ENTRY_BYTES = 12
+#: A sweep group's small-receiver rows are made this many nodes at a pass (``group_light``).
+ROW_BATCH = 8
 
 
 @dataclass(frozen=True)
@@ -162,3 +167,25 @@ class SweepTransport:
         if near.values().numel() == 0:
             return incident
         return incident + near @ torch.zeros_like(leaf_power).index_add_(0, self.column_of_leaf, leaf_power)
+
+
+def group_light(mesh: Mesh, small: dict[int, tuple[HemicubeView, float]], nodes: list[int],
+                shooters: list[NearShooter], reach: float, totals: str
+                ) -> tuple[dict[int, torch.Tensor], dict[int, NearReceivers]]:
+    """What a sweep group's nodes send, made apart from the solver (on its worker thread):
+    the rows F_sj (T,) of the ``small`` nodes (node -> (view, pixel limit),
+    ``small_receiver_rows`` ``ROW_BATCH`` nodes a pass), then the near fields of the ``nodes``
+    (``nearfield.near_fields``, all together) from their ``shooters``, whose ``form_factors``
+    are None where ``small`` makes the row. Returns the rows made and the near fields (none
+    with ``reach`` 0), by node."""
+    rows, small = {}, list(small.items())
+    for start in range(0, len(small), ROW_BATCH):
+        part = small[start:start + ROW_BATCH]
+        made = small_receiver_rows([view for _, (view, _) in part], mesh.corners, mesh.areas,
+                                   [limit for _, (_, limit) in part])
+        rows.update(zip([node for node, _ in part], made))
+    if reach <= 0 or not nodes:
+        return rows, {}
+    shooters = [replace(s, form_factors=rows[node]) if s.form_factors is None else s
+                for node, s in zip(nodes, shooters)]
+    return rows, dict(zip(nodes, near_fields(mesh, shooters, reach, totals)))
