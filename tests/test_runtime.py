@@ -24,3 +24,24 @@ def test_keep_freed_memory_takes_on_glibc_and_is_idempotent():
         pytest.skip("not glibc")
     assert keep_freed_memory() is True
     assert keep_freed_memory() is True
+
+
+@pytest.mark.parametrize("asked", [None, "3"])
+def test_the_rasteriser_gets_one_core_fewer_unless_the_user_chose(asked):
+    # A sweep's two threads work beside llvmpipe's; LP_NUM_THREADS is read when the context is
+    # made, so a fresh process shows what it was given.
+    import os
+    import subprocess
+    env = {k: v for k, v in os.environ.items() if k != "LP_NUM_THREADS"}
+    if asked is not None:
+        env["LP_NUM_THREADS"] = asked
+    code = ("import os; from hemirad.transport.gl import GLContext; GLContext.get(); "
+            "names = [open(f'/proc/self/task/{t}/comm').read() for t in os.listdir('/proc/self/task')]; "
+            "print(os.environ['LP_NUM_THREADS'], GLContext.is_software(), "
+            "sum(name.startswith('llvmpipe') for name in names))")
+    given, software, raster_threads = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                                                     text=True, check=True).stdout.split()
+    cores = len(os.sched_getaffinity(0))
+    assert given == (asked or str(max(1, cores - 1)))
+    if software == "True" and sys.platform.startswith("linux"):
+        assert int(raster_threads) == int(given)
