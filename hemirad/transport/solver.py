@@ -29,7 +29,7 @@ from hemirad.transport.nearfield import NearReceivers, NearShooter, incident_pow
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
 from hemirad.transport.shooters import PatchShooters, eye_points
-from hemirad.transport.smallreceivers import BOUNCE_MAX_PIXELS, MAX_PIXELS, small_receiver_form_factors, small_receiver_rows
+from hemirad.transport.smallreceivers import BOUNCE_MAX_PIXELS, MAX_PIXELS, small_receiver_form_factors
 from hemirad.transport.sweep import SweepTransport, group_light
 from hemirad.transport.view import HemicubeView
 
@@ -476,7 +476,8 @@ class ProgressiveSolver:
                 self._prefetch(order[i + 1])
             nodes = patches.cut(patch, self.render_and_keep, self.mesh.corners)
             if making is not None and making[1].done():
-                making = self._join_group(making)
+                self._join_group(making)
+                making = None
             for node in nodes:  # rows not kept are made with the group's (``_make_group``)
                 F, view = self.rows.get(node, self.mesh.num_elements), self._views.pop(node, None)
                 new[node] = (F, self.render(node) if F is None and view is None else view)
@@ -489,7 +490,7 @@ class ProgressiveSolver:
                 self._join_group(making)
             making, new = (new, self._make_group(new)), {}
             if i + 1 == len(order):
-                making = self._join_group(making)
+                self._join_group(making)
             if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
                 warnings.warn(f"the light kept for sweeps outgrew solver.cache_mb ({self.rows.budget_bytes >> 20} MB) "
                               f"at {self.mesh.num_elements} elements: from here patches shoot one at a time, drawing "
@@ -593,13 +594,10 @@ class ProgressiveSolver:
 
     def _make_group(self, nodes: dict[int, tuple[torch.Tensor | None, HemicubeView]]) -> Future:
         """Start making a sweep group's rows and near fields: the ``nodes`` (node -> (row or
-        None, view)) without a row get one (``node_row``); those of small receivers are made
-        ``ROW_BATCH`` nodes in a pass (``small_receiver_rows``: a reflecting node's few
-        receivers under a pixel cost the torch calls, not the arithmetic), each as made alone
-        up to the last bits of the closed forms' ``atan2``. Rows that draw (emitters' eyes)
-        and pixel sums are made here; the small receivers' rows and the near fields on the
-        worker thread (``group_light``), which touches no state of the solver: the future's
-        result is taken in by ``_join_group``."""
+        None, view)) without a row get one (``node_row``). Rows that draw (emitters' eyes) and
+        pixel sums are made here; the rows of small receivers and the near fields on the
+        worker thread (``sweep.group_light``), which touches no state of the solver: the
+        future's result is taken in by ``_join_group``."""
         batch = {}  # node -> (view, pixel limit)
         for node, (F, view) in nodes.items():
             if F is not None:
