@@ -212,9 +212,10 @@ class ProgressiveSolver:
         self.emitted_power = (emission * self.areas[:, None]).sum(0)  # (3,)
         self.profiler = Profiler(PHASES)
         self.renderer = HemicubeRenderer(mesh, resolution, cull, self.device, self.profiler)
-        # with patches, the nodes that emit nothing draw here (``reflector_resolution``)
-        self.reflector_renderer = (HemicubeRenderer(mesh, reflector_resolution, cull, self.device, self.profiler)
-                                   if reflector_resolution not in (None, resolution) else None)
+        # with patches, the nodes that emit nothing draw at this resolution (``_renderer_of``)
+        self.reflector_resolution = reflector_resolution if reflector_resolution != resolution else None
+        self.reflector_renderer: HemicubeRenderer | None = None  # made when a node first draws there
+        self._cull = cull
         refined_small_receivers = small_receivers if refined_small_receivers is None else refined_small_receivers
         for choice in (small_receivers, refined_small_receivers):
             if choice not in SMALL_RECEIVER_CHOICES:
@@ -268,9 +269,12 @@ class ProgressiveSolver:
         the Fig. 6(c)-class run, refined and converged, with its reflectors at half its 256
         split to 91,424 elements against 89,333, and took 45.3 s against 44.8 s once its
         refining shots drew at 256."""
-        if (self.reflector_renderer is None or self.small_receivers == "closed_form"
+        if (self.reflector_resolution is None or self.small_receivers == "closed_form"
                 or self._emitting(node)[0]):
             return self.renderer
+        if self.reflector_renderer is None:
+            self.reflector_renderer = HemicubeRenderer(self.mesh, self.reflector_resolution, self._cull, self.device,
+                                                       self.profiler)
         return self.reflector_renderer
 
     def _set_geometry(self, mesh: Mesh) -> None:
