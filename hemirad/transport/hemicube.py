@@ -111,7 +111,6 @@ def _frustum(left, right, bottom, top, near, far) -> np.ndarray:
 
 
 _FORWARD_AXES = np.asarray([forward for forward, _, _, _ in FACES], dtype=np.float64)  # (5, 3)
-_FACE_NUMBERS = np.arange(len(FACES))[:, None]
 _BELOW = len(FACES)  # the region of a vertex below the horizon
 
 
@@ -134,7 +133,7 @@ def face_visibility(local: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     margin = 1e-5 * (np.abs(local) @ np.ones(3))  # (V,)
     along = _FORWARD_AXES @ local.T  # (5, V); faces first: the reductions below run across rows
     over = along > along.max(axis=0) - margin  # the axes within the margin of the largest
-    region = np.where(over.sum(axis=0) == 1, (_FACE_NUMBERS * over).sum(axis=0), -1)  # (V,) -1: on a boundary
+    region = np.where(over.sum(axis=0) == 1, over.argmax(axis=0), -1)  # (V,) -1: on a boundary
     region[local[:, 2] < -margin] = _BELOW
     r = region.take(triangles)  # (T, 3)
     first = r[:, 0]
