@@ -267,9 +267,9 @@ def near_fields(mesh: Mesh, shooters: Sequence[NearShooter], reach: float, total
         while last < B and total + pairs[last] <= PAIR_CHUNK:
             total, last = total + pairs[last], last + 1
         part = slice(starts[first], starts[last])
-        made += _near_run(mesh, shooters[first:last], shooter_of[part] - first, rows[part],
-                                     counts[first:last], points[first:last], normals[first:last],
-                                     form_factors[first:last], near[first:last], totals, among)
+        made += _near_run(mesh, shooters[first:last], shooter_of[part] - first, rows[part], counts[first:last],
+                          points[first:last], normals[first:last], form_factors[first:last], near[first:last], totals,
+                          among)
         first = last
     return made
 

@@ -15,6 +15,10 @@ far-scaled power, ``near`` (T, T0) the near weights, a node's k sources in the c
 lo..lo + k - 1 of its leaf positions [lo, hi), and P (T0, 3) those sources' power. Both
 matrices are kept sorted by (receiver, column), whatever order the nodes were added in, so a
 sum over them is the same bit for bit in a run resumed from a checkpoint.
+
+What a group of nodes adds (their rows' small receivers and their near fields) is made by
+``group_light``, a function of the mesh and the nodes' views alone, so the solver runs it on
+a worker thread while it draws the next group's hemicubes.
 """
 from __future__ import annotations
 
