@@ -127,10 +127,7 @@ def group_patches(mesh: Mesh, group: np.ndarray) -> PatchTree:
     _, key = np.unique(np.asarray(group), return_inverse=True)
     order = np.argsort(key, kind="stable")
     cuts = np.flatnonzero(np.diff(key[order])) + 1
-    weighted = mesh.normals.cpu().numpy()[order] * mesh.areas.cpu().numpy()[order, None]
-    starts = np.r_[0, cuts]
-    normal = _run_sums(weighted, starts, np.diff(np.r_[starts, len(order)]))  # as _mean_plane_axes sums one
-    u, v = plane_axes(normal / _lengths(normal)[:, None])
+    u, v = _mean_plane_axes(order, mesh.normals.cpu().numpy(), mesh.areas.cpu().numpy(), np.r_[0, cuts])
     return _grow_trees(mesh, list(zip(np.split(order, cuts), u, v)))
 
 
@@ -195,7 +192,7 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
         if len(members) == 1:
             alone.append(members)
             continue
-        u, v = _mean_plane_axes(members, normals, areas)
+        u, v = (axis[0] for axis in _mean_plane_axes(members, normals, areas))
         size = float(np.median(patch_size[members]))
         if size <= 0:  # patches turned off
             out += _each_alone(members, normals)
@@ -248,14 +245,18 @@ def _curved_cells(members: np.ndarray, owner: np.ndarray, centroids: np.ndarray,
                 if len(part) > 1 and _crossed(part, s, owner, low, high):
                     out += _each_alone(part, normals)
                     continue
-                out.append((part, *_mean_plane_axes(part, normals, areas)))
+                out.append((part, *(axis[0] for axis in _mean_plane_axes(part, normals, areas))))
     return out
 
 
-def _mean_plane_axes(members: np.ndarray, normals: np.ndarray, areas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``plane_axes`` of the area-weighted mean normal of the elements ``members`` (k,)."""
-    normal = (normals[members] * areas[members, None]).sum(0)
-    return plane_axes(normal / np.linalg.norm(normal))
+def _mean_plane_axes(elements: np.ndarray, normals: np.ndarray, areas: np.ndarray,
+                     starts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``plane_axes`` (g, 3) u and v of the area-weighted mean normal of each of g runs of
+    ``elements`` (k,), run i being ``elements[starts[i]:starts[i + 1]]`` (default: one run,
+    all of them), each sum added row after row (``_run_sums``)."""
+    starts = np.zeros(1, dtype=np.int64) if starts is None else starts
+    normal = _run_sums(normals[elements] * areas[elements, None], starts, np.diff(np.r_[starts, len(elements)]))
+    return plane_axes(normal / _lengths(normal)[:, None])
 
 
 def hole_rims(mesh: Mesh, least: np.ndarray | None = None) -> np.ndarray:

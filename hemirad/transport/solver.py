@@ -617,11 +617,11 @@ class ProgressiveSolver:
                 F = self.shot_row(view, None, emits)  # pixel sums
             self.rows.put(node, F)
             nodes[node] = (F, view)
-        shooters = [self._near_shooter(node, F, view) for node, (F, view) in nodes.items()] if self.near_reach > 0 else []
+        shooters = ({node: self._near_shooter(node, F, view) for node, (F, view) in nodes.items()}
+                    if self.near_reach > 0 else {})
         if self._worker is None:
             self._worker = ThreadPoolExecutor(1, thread_name_prefix="hemirad-sweep")
-        return self._worker.submit(group_light, self.mesh, batch, list(nodes), shooters, self.near_reach,
-                                   self.near_totals)
+        return self._worker.submit(group_light, self.mesh, batch, shooters, self.near_reach, self.near_totals)
 
     def _join_group(self, making: tuple[dict, Future]) -> None:
         """Take in what the worker made of a sweep group (``_make_group``: its nodes, as the
@@ -683,13 +683,13 @@ class ProgressiveSolver:
         With ``among`` (R,), only those among these elements, unscaled, and not kept."""
         if self.near_reach <= 0:
             return None
-        if among is None:
-            if shooter not in self._near:
-                self._near[shooter] = near_fields(self.mesh, [self._near_shooter(shooter, F, view)], self.near_reach,
-                                                  self.near_totals)[0]
+        if among is None and shooter in self._near:
             return self._near[shooter]
-        return near_fields(self.mesh, [self._near_shooter(shooter, F, view)], self.near_reach, self.near_totals,
+        near = near_fields(self.mesh, [self._near_shooter(shooter, F, view)], self.near_reach, self.near_totals,
                            among)[0]
+        if among is None:
+            self._near[shooter] = near
+        return near
 
     def _near_shooter(self, shooter: int, F: torch.Tensor | None, view: HemicubeView | None) -> NearShooter:
         """What ``nearfield`` needs of ``shooter`` (an element, or a node of the patches) shooting

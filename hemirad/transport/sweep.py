@@ -173,23 +173,21 @@ class SweepTransport:
         return incident + near @ torch.zeros_like(leaf_power).index_add_(0, self.column_of_leaf, leaf_power)
 
 
-def group_light(mesh: Mesh, small: dict[int, tuple[HemicubeView, float]], nodes: list[int],
-                shooters: list[NearShooter], reach: float, totals: str
-                ) -> tuple[dict[int, torch.Tensor], dict[int, NearReceivers]]:
+def group_light(mesh: Mesh, small: dict[int, tuple[HemicubeView, float]], shooters: dict[int, NearShooter],
+                reach: float, totals: str) -> tuple[dict[int, torch.Tensor], dict[int, NearReceivers]]:
     """What a sweep group's nodes send, made apart from the solver (on its worker thread):
     the rows F_sj (T,) of the ``small`` nodes (node -> (view, pixel limit),
-    ``small_receiver_rows`` ``ROW_BATCH`` nodes a pass), then the near fields of the ``nodes``
-    (``nearfield.near_fields``, all together) from their ``shooters``, whose ``form_factors``
-    are None where ``small`` makes the row. Returns the rows made and the near fields (none
-    with ``reach`` 0), by node."""
+    ``small_receiver_rows`` ``ROW_BATCH`` nodes a pass), then the near fields of the nodes of
+    ``shooters`` (node -> what ``nearfield`` needs of it; empty with ``reach`` 0), all
+    together (``nearfield.near_fields``), their ``form_factors`` None where ``small`` makes the
+    row. Returns the rows made and the near fields, by node."""
     rows, small = {}, list(small.items())
     for start in range(0, len(small), ROW_BATCH):
         part = small[start:start + ROW_BATCH]
         made = small_receiver_rows([view for _, (view, _) in part], mesh.corners, mesh.areas,
                                    [limit for _, (_, limit) in part])
         rows.update(zip([node for node, _ in part], made))
-    if reach <= 0 or not nodes:
+    if not shooters:
         return rows, {}
-    shooters = [replace(s, form_factors=rows[node]) if s.form_factors is None else s
-                for node, s in zip(nodes, shooters)]
-    return rows, dict(zip(nodes, near_fields(mesh, shooters, reach, totals)))
+    made = [replace(s, form_factors=rows[node]) if s.form_factors is None else s for node, s in shooters.items()]
+    return rows, dict(zip(shooters, near_fields(mesh, made, reach, totals)))
