@@ -103,7 +103,7 @@ MIN_ANGLE, MAX_ANGLE = 28.0, 124.0
 
 def load_with_contacts(name: str) -> Scene:
     scene = hemirad.load_scene(name)
-    scene.meshing.contacts = True  # by default only when refining by the answer
+    scene.meshing.contacts = True  # as by default where patches shoot, whatever the configuration
     return scene
 
 
@@ -468,25 +468,30 @@ def test_floor_beside_the_cornell_blocks_matches_the_reference():
     assert np.abs(conforming).mean() < 0.6 * np.abs(straddling).mean()
 
 
-def test_contacts_are_meshed_by_default_when_refinement_judges_the_answer():
-    # auto: the Cornell floor loses the blocks' footprints only with refine.criterion answer
-    # (whose small elements beside the contacts it needs), a run's checkpoint records which
+def test_contacts_are_meshed_by_default_where_patches_shoot():
+    # auto: the Cornell floor loses the blocks' footprints in the default configuration
+    # (patches shoot), refined by the answer or not, and keeps them in the paper's (every
+    # element shoots), whose figures keep their meshes; a run's checkpoint records which
     from hemirad import checkpoint as checkpoints
 
     scene = hemirad.load_scene("cornell_box")
-    assert scene.meshing.contacts == "auto"
-    plain = build_mesh(scene)
-    scene.refine.pattern, scene.refine.criterion = "pattern2", "answer"
-    answered = build_mesh(scene)
-    scene.meshing.contacts = True
-    assert_same_mesh(answered, build_mesh(scene))
-    floor = [m.areas[m.surface == m.surface_names.index("floor")].sum() for m in (plain, answered)]
-    assert float(floor[1]) < float(floor[0]) - 0.01 * float(floor[0])  # the footprints left out
+    assert scene.meshing.contacts == "auto" and scene.solver.shoots_patches
+    default = build_mesh(scene)
     assert checkpoints.fingerprint(scene)["meshing.contacts"] is True
-    scene.refine.criterion = "gradient"
-    scene.meshing.contacts = "auto"
+    scene.refine.pattern, scene.refine.criterion = "pattern2", "answer"
+    assert_same_mesh(default, build_mesh(scene))
+    scene.meshing.contacts = True
+    assert_same_mesh(default, build_mesh(scene))
+    paper = hemirad.load_scene("cornell_box")
+    paper.solver.paper()
+    plain = build_mesh(paper)
+    assert checkpoints.fingerprint(paper)["meshing.contacts"] is False
+    floor = [m.areas[m.surface == m.surface_names.index("floor")].sum() for m in (plain, default)]
+    assert float(floor[1]) < float(floor[0]) - 0.01 * float(floor[0])  # the footprints left out
+    paper.meshing.contacts = False
+    assert_same_mesh(plain, build_mesh(paper))
+    scene.meshing.contacts = False
     assert_same_mesh(plain, build_mesh(scene))
-    assert checkpoints.fingerprint(scene)["meshing.contacts"] is False
 
 
 # ----------------------------------------------------------------------------------------
@@ -517,7 +522,9 @@ def test_the_rims_of_the_footprints_are_found_and_nothing_else():
             expected |= on & (d < 1e-6 * 560).any(1)
     assert expected.any()
     np.testing.assert_array_equal(rims, expected)
-    assert not hole_rims(build_mesh(hemirad.load_scene("cornell_box"))).any()  # no contacts: no holes
+    plain = hemirad.load_scene("cornell_box")
+    plain.meshing.contacts = False
+    assert not hole_rims(build_mesh(plain)).any()  # no contacts: no holes
 
 
 def test_a_block_beside_a_patched_conforming_floor_gets_the_floors_light():

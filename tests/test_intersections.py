@@ -166,7 +166,9 @@ def test_an_emitter_partly_inside_a_solid_loses_no_light_to_its_back_faces():
     def scene(intersections: bool) -> Scene:
         lamp = horizontal_quad(1.5, (1.0, 1.0), (3.0, 3.0), "lamp", "lamp", up=False)
         box = Box((1.5, 1.0, 1.5), (2.5, 2.0, 2.5), "white", 0.25, name="box")
-        return room_scene(lamp, box, element_size=0.5, intersections=intersections)
+        cut = room_scene(lamp, box, element_size=0.5, intersections=intersections)
+        cut.meshing.contacts = False  # the box's sides close round the panel's part inside too
+        return cut
     assert escaped_share(scene(False)) > 0.15  # a quarter of the panel is inside
     assert escaped_share(scene(True)) < 0.005
 

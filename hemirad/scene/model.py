@@ -318,10 +318,9 @@ class MeshingOptions:
     """How the initial mesh is made (scene key ``meshing``)."""
 
     # Mesh each planar surface that others touch (a block on a floor) conforming to where
-    # they touch, the covered part dropped (``hemirad.scene.contacts``). ``auto``: with
-    # refinement judged on the answer, whose elements beside the contacts become small
-    # enough for it (``Scene.meshes_contacts``; README, Contact meshing).
-    # False: every surface is meshed on its own, as the paper's figures were.
+    # they touch, the covered part dropped (``hemirad.scene.contacts``). ``auto``: where
+    # patches shoot, off in the paper's configuration (``Scene.meshes_contacts``; README,
+    # Contact meshing). False: every surface is meshed on its own, as the paper's figures were.
     contacts: bool | str = "auto"
     # Cut surfaces where others pass through them (a lamp's barrel through its globe) and
     # drop what lies inside a closed solid (``hemirad.scene.intersections``): an element
@@ -381,16 +380,24 @@ class Scene:
 
     @property
     def meshes_contacts(self) -> bool:
-        """``meshing.contacts`` made definite: ``auto`` is on with refinement judged on the
-        answer. Measured on the Cornell box against its reference (relMSE, converged): the
-        answer's first round 0.00059 with contacts against 0.00084 without, its third 0.00021
-        against 0.00029, with 22 of the 26 floor points 1 cm outside the blocks within 5%
-        (12 without; 25 since arithmetic 12); uniform meshes gain too (arithmetic 12: 2,596
-        elements 0.00070 against 0.00117 for 2,660; 9,890: 0.00016 against 0.00035), but at
-        their sizes the floor beside the blocks is not resolved, and the bundled scenes keep
-        the meshes they were measured with."""
+        """``meshing.contacts`` made definite: ``auto`` is on where patches shoot (the default
+        configuration, refinement judged on the answer included) and off in the paper's
+        (every element shoots), whose figures keep the meshes they were measured with.
+        Measured against the references (relMSE, converged, the default configuration), the
+        uniform meshes: Cornell box 0.00117 -> 0.00058 (2,660 -> 2,582 elements) and 0.00035
+        -> 0.00015 (10,162 -> 9,820), office 0.00072 -> 0.00050 and 0.00016 -> 0.00013, floating
+        0.00162 -> 0.00029 and 0.00053 -> 0.00004 (the ceiling its lamp hangs under lost
+        the dark halo that elements straddling the lamp's outline drew), in about the same
+        hemicubes; the furnished room of ``scripts/peer_room.py`` median 2.2% -> 1.7%,
+        relative RMS 4.7% -> 3.4% at its 185 points (its ceiling round the lamps' barrels).
+        With the answer: the Cornell box's first round 0.00059 against 0.00084 without, its
+        third 0.00021 against 0.00029, with 22 of the 26 floor points 1 cm outside the blocks
+        within 5% (12 without; 25 since arithmetic 12). Locally, at the shipped 4 cm
+        elements, the floor 1 cm beside a block reads further off with its footprint meshed
+        (README, Contact meshing): the light changes too fast there for any element that
+        size; refinement resolves it."""
         contacts = self.meshing.contacts
-        return self.refines_by_answer if contacts == "auto" else bool(contacts)
+        return (self.solver.shoots_patches or self.refines_by_answer) if contacts == "auto" else bool(contacts)
 
     def with_element_sizes_scaled(self, factor: float) -> "Scene":
         """A copy of the scene with every element size (room faces' too) times ``factor``."""
