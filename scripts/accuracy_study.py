@@ -378,7 +378,7 @@ def write_converged_table(path: Path, rows: list[dict]) -> None:
     machine = f"{platform.machine()}, {platform.system()}, 1 torch thread, {GLContext.renderer_name()}"
     lines = ["# Converged: uniform meshes against refinement judged on the answer", "",
              f"Made by `python scripts/accuracy_study.py --converged` on {machine}. The default configuration "
-             f"(patches shooting in sweeps, hemicube 128; small receivers as `auto` makes them: `lamps` on the uniform meshes, `closed_form` on the answer's), every run converged to {CONVERGED_UNSHOT:g} unshot power; "
+             f"(patches shooting in sweeps, hemicube 128, contacts meshed; small receivers as `auto` makes them: `lamps` on the uniform meshes, `closed_form` on the answer's), every run converged to {CONVERGED_UNSHOT:g} unshot power; "
              "`uniform x f`: the shipped element sizes times f, no refinement; `answer from x f`: that mesh, "
              f"then {CONVERGED_ROUNDS} rounds of `refine.criterion: answer` to {CONVERGED_BUDGET:,} elements (pattern 2, grown by equal ratios, each round at most 5.5 times, "
              "its mesh then solved afresh with the initial mesh's patches, each holding its elements' children, "
