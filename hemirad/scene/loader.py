@@ -31,7 +31,7 @@ The schema, all lengths in scene units::
 
 A material may give ``flux: <lumens>`` (and ``colour``) instead of ``emission``.
     meshing: {contacts: auto, intersections: true}    # contacts: mesh touched surfaces conforming to
-                                       # what touches them (auto: when refining by the answer);
+                                       # what touches them (auto: where patches shoot);
                                        # intersections: cut surfaces where others
                                        # pass through them, what closed solids hold dropped
 
