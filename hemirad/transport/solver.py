@@ -215,7 +215,6 @@ class ProgressiveSolver:
         # with patches, the nodes that emit nothing draw at this resolution (``_renderer_of``)
         self.reflector_resolution = reflector_resolution if reflector_resolution != resolution else None
         self.reflector_renderer: HemicubeRenderer | None = None  # made when a node first draws there
-        self._cull = cull
         refined_small_receivers = small_receivers if refined_small_receivers is None else refined_small_receivers
         for choice in (small_receivers, refined_small_receivers):
             if choice not in SMALL_RECEIVER_CHOICES:
@@ -273,8 +272,8 @@ class ProgressiveSolver:
                 or self._emitting(node)[0]):
             return self.renderer
         if self.reflector_renderer is None:
-            self.reflector_renderer = HemicubeRenderer(self.mesh, self.reflector_resolution, self._cull, self.device,
-                                                       self.profiler)
+            self.reflector_renderer = HemicubeRenderer(self.mesh, self.reflector_resolution, self.renderer.hemicube.cull,
+                                                       self.device, self.profiler)
         return self.reflector_renderer
 
     def _set_geometry(self, mesh: Mesh) -> None:
