@@ -217,34 +217,50 @@ def _curved_cells(members: np.ndarray, owner: np.ndarray, centroids: np.ndarray,
                   areas: np.ndarray, corners: np.ndarray, patch_size: np.ndarray
                   ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The patches of curved surfaces from their (m,) elements, each alone on its plane: per
-    object (``owner`` (T,)), those whose centroids share a cube of the grid of side the
-    object's median patch size, and whose normals lie within ``CURVED_PATCH_CONE`` of the cube's largest element's
-    (one hemicube along their mean normal then stands in for them as it does for a plane
-    patch; a sphere's cube holds a cap, a thin shell's two sides part). Where another object
-    passes through such a group's bounding box, its elements shoot alone: a lamp's globe
-    pierced by its holder must not shoot the light of its part inside the holder from a
-    point outside it (measured on a furnished room: 6% too bright everywhere)."""
+    object (``owner`` (T,)), caps (``_caps``) on a grid of side the object's median patch size."""
     out = []
-    cos_cone = np.cos(np.radians(CURVED_PATCH_CONE))
     low, high = corners.min(1), corners.max(1)  # (T, 3) each element's bounding box
     for s in np.unique(owner[members]):
         group = members[owner[members] == s]
         size = float(np.median(patch_size[group]))
         if size <= 0:  # patches turned off: every element shoots alone
             out += _each_alone(group, normals)
-            continue
-        cell = np.floor((centroids[group] - centroids[group].min(0)) / size).astype(np.int64)
-        _, key = np.unique(cell, axis=0, return_inverse=True)
-        for c in range(int(key.max()) + 1):
-            left = group[key.reshape(-1) == c]
-            while len(left):
-                seed = left[int(np.argmax(areas[left]))]
-                within = normals[left] @ normals[seed] >= cos_cone
-                part = left[within]
-                left = left[~within]
-                if len(part) > 1 and _crossed(part, s, owner, low, high):
-                    out += _each_alone(part, normals)
-                    continue
+        else:
+            out += _caps(group, size, s, owner, centroids, normals, areas, low, high)
+    return out
+
+
+def _caps(group: np.ndarray, size: float, own: int, owner: np.ndarray, centroids: np.ndarray,
+          normals: np.ndarray, areas: np.ndarray, low: np.ndarray, high: np.ndarray
+          ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The caps of the elements ``group`` (k,) of object ``own``: those whose centroids share a
+    cube of side ``size``, and whose normals lie within ``CURVED_PATCH_CONE`` of the cube's
+    largest element's (one hemicube along their mean normal then stands in for them as it does
+    for a plane patch; a sphere's cube holds a cap, a thin shell's two sides part). Where
+    another object reaches into a cap's bounding box (``low``, ``high`` (T, 3), every
+    element's), the cap is made again from cubes of half the side, down to single elements:
+    a lamp's globe pierced by its holder must not shoot the light of its part inside the
+    holder from a point outside it (measured on a furnished room: 6% too bright everywhere).
+    Halving, rather than every element of such a cap shooting alone, leaves alone only those
+    beside the other object: on that room 1,589 patches instead of 1,748 (the teapot, which
+    reaches into a globe's bounding box, 376 -> 236; the globes 354 -> 335), 1,747 hemicubes
+    instead of 1,906, the same error at its points (median 1.7%, relative RMS 3.4%)."""
+    out = []
+    cos_cone = np.cos(np.radians(CURVED_PATCH_CONE))
+    cell = np.floor((centroids[group] - centroids[group].min(0)) / size).astype(np.int64)
+    _, key = np.unique(cell, axis=0, return_inverse=True)
+    for c in range(int(key.max()) + 1):
+        left = group[key.reshape(-1) == c]
+        while len(left):
+            seed = left[int(np.argmax(areas[left]))]
+            within = normals[left] @ normals[seed] >= cos_cone
+            part = left[within]
+            left = left[~within]
+            if len(part) > 1 and _crossed(part, own, owner, low, high):
+                spread = float(np.ptp(centroids[part], axis=0).max())
+                out += (_caps(part, size / 2, own, owner, centroids, normals, areas, low, high)
+                        if spread > 0 else _each_alone(part, normals))  # (centroids that coincide)
+            else:
                 out.append((part, *(axis[0] for axis in _mean_plane_axes(part, normals, areas))))
     return out
 
