@@ -9,7 +9,7 @@ from hemirad.adaptive.refine import Refiner
 from hemirad.adaptive.shooter_split import point_source_test
 from hemirad.core.device import select_device
 from hemirad.geometry.mesh import Mesh
-from hemirad.geometry.patches import build_patches, element_sides, group_patches, hole_rims
+from hemirad.geometry.patches import build_patches, element_sides, group_patches, rim_runs
 from hemirad.lighting.photometry import emission_table
 from hemirad.scene.meshing import build_mesh, surface_objects
 from hemirad.scene.model import MeshFile, Scene, resolved_reflector_resolution, resolved_small_receivers
@@ -32,8 +32,10 @@ AUTO_PATCH_ELEMENTS = 2.0
 #: under 2%, the elements' own error being the larger there.
 AUTO_PATCH_SCENE = 0.15
 #: With contacts meshed, the elements round a footprint whose rim is at least this many patch
-#: sides long shoot alone (``patch_sizes``).
+#: sides long shoot apart from the others (``make_patches``),
 RIM_PATCHES = 2.0
+#: together only along a stretch of the rim that turns at most this many degrees.
+RIM_TURN = 30.0
 #: A patch's light to receivers within this many patch radii is sent as its elements send it
 #: (``transport.nearfield``). Measured in a closed 1 m box of 0.25 m cells (patches of 8 to 32
 #: elements, reflectance 0.7): 3 leaves up to 4% per element, 4 (the box all near) 0.5%.
@@ -90,7 +92,24 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
 def make_patches(scene: Scene, mesh: Mesh, device: torch.device) -> PatchShooters:
     """The patches of the initial ``mesh`` as ``scene.solver`` asks, with the shooter tests."""
     owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]  # (T,) each element's object
-    return PatchShooters(build_patches(mesh, patch_sizes(scene, mesh, owner), owner), device, shooter_test(scene),
+    size = patch_sizes(scene, mesh, owner)
+    apart = None
+    if scene.meshes_contacts:
+        # Beside what stands on a surface (a footprint's rim) its elements shoot only with
+        # those along the same straight stretch of the rim (and alone at its corners): a floor
+        # patch reaching round a block's corner, or over its rim, shoots from a centroid that
+        # sees the block's side otherwise than the rim does. Cornell box at 8 cm elements,
+        # contacts meshed: the tall block's front 11% dark with such patches, 0.3% off every
+        # element shooting; the answer's second round relMSE 0.00205 -> 0.00039. On a refined
+        # mesh a rim element's children shoot as one patch (``refined_patches``): against each
+        # refined rim element alone, 6.9 s for 0.00039 instead of 11.0 s for 0.00037. Only
+        # footprints whose rim is at least RIM_PATCHES patch sides long: the office's desk and
+        # chair legs (rims of 0.2 m among 0.3 m patches) changed nothing but doubled its
+        # rounds' seconds.
+        apart = rim_runs(mesh, RIM_PATCHES * size, RIM_TURN)
+        size[apart < 0] = 0.0
+    tree = build_patches(mesh, size, owner, apart)
+    return PatchShooters(tree, device, shooter_test(scene),
                          source_corners=mesh.corners, eye_level=scene.emitter_eye_level)
 
 
@@ -115,7 +134,7 @@ def refined_patches(scene: Scene, solver: ProgressiveSolver, saved: dict | None 
     group, source = (patches.patch, patches.source) if saved is None else (saved["patch"], saved["source"])
     group = group.cpu().numpy().copy()
     owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]
-    alone = (solver.emission > 0).any(dim=1).cpu().numpy() | (patch_sizes(scene, mesh, owner, rims=False) <= 0)
+    alone = (solver.emission > 0).any(dim=1).cpu().numpy() | (patch_sizes(scene, mesh, owner) <= 0)
     group[alone] = group.max() + 1 + np.flatnonzero(alone)
     return PatchShooters(group_patches(mesh, group), solver.device, shooter_test(scene), source=source,
                          source_corners=patches.source_corners, source_split=scene.refine.pattern,
@@ -131,13 +150,12 @@ def scene_extent(mesh: Mesh) -> float:
     return float(sides.min()) if len(sides) else float("inf")
 
 
-def patch_sizes(scene: Scene, mesh: Mesh, owner: np.ndarray, rims: bool = True) -> np.ndarray:
+def patch_sizes(scene: Scene, mesh: Mesh, owner: np.ndarray) -> np.ndarray:
     """(T,) the patch side each element asks for: its object's (``owner`` (T,), the index in
     ``scene.objects`` of each element's) ``patch_size``, else the solver's; ``auto`` is
     ``AUTO_PATCH_ELEMENTS`` element sides (refining by the answer, at most
     ``AUTO_PATCH_SCENE`` times the mesh's smallest extent, ``scene_extent``), ``none`` 0 (it
-    shoots alone); with contacts meshed, 0 on the rims of the holes they leave
-    (``geometry.patches.hole_rims``) unless ``rims`` is False."""
+    shoots alone)."""
     asked = [obj.patch_size if obj.patch_size is not None else scene.solver.patch_size for obj in scene.objects]
     # per object: a multiple of the element side (auto) and a length (a number), one of them 0
     factor = np.asarray([AUTO_PATCH_ELEMENTS if size == "auto" else 0.0 for size in asked])
@@ -148,16 +166,4 @@ def patch_sizes(scene: Scene, mesh: Mesh, owner: np.ndarray, rims: bool = True) 
     auto = factor[owner] * np.maximum(element_sides(mesh), nominal[owner])
     if scene.refines_by_answer:
         auto = np.minimum(auto, AUTO_PATCH_SCENE * scene_extent(mesh))
-    size = auto + length[owner]
-    if rims and scene.meshes_contacts:
-        # Beside what stands on a surface (a footprint's rim) its elements shoot alone: a floor
-        # patch reaching round a block's corner shoots from a centroid that sees the block's
-        # side otherwise than the rim does. Cornell box at 8 cm elements, contacts meshed: the
-        # tall block's front 11% dark with such patches, 0.3% off every element shooting; the
-        # answer's second round relMSE 0.00205 -> 0.00039. On a refined mesh (``rims`` False)
-        # a rim element's children then shoot as one patch: against each refined rim element
-        # alone, 6.9 s for 0.00039 instead of 11.0 s for 0.00037. Only footprints whose rim is
-        # at least RIM_PATCHES patch sides long: the office's desk and chair legs (rims of
-        # 0.2 m among 0.3 m patches) changed nothing but doubled its rounds' seconds.
-        size[hole_rims(mesh, RIM_PATCHES * size)] = 0.0
-    return size
+    return auto + length[owner]

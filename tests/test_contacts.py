@@ -11,13 +11,14 @@ import pytest
 import torch
 
 import hemirad
+from hemirad.assembly import RIM_PATCHES, RIM_TURN, make_patches, patch_sizes
 from hemirad.core.errors import SceneError
 from hemirad.evaluation.surface_points import elements_at
 from hemirad.geometry.mesh import barycentric
-from hemirad.geometry.patches import hole_rims
+from hemirad.geometry.patches import rim_runs
 from hemirad.lighting.sensors import final_gather
 from hemirad.scene.loader import parse_scene
-from hemirad.scene.meshing import build_mesh
+from hemirad.scene.meshing import build_mesh, surface_objects
 from hemirad.scene.model import Box, Camera, Material, Quad, Room, Scene
 
 from patches import assert_same_mesh
@@ -508,11 +509,11 @@ def _distance_to_outline(points: np.ndarray, polygon) -> np.ndarray:
 
 
 def test_the_rims_of_the_footprints_are_found_and_nothing_else():
-    """``hole_rims``: the floor elements with a corner on a block's footprint and the ceiling
+    """``rim_runs``: the floor elements with a corner on a block's footprint and the ceiling
     elements with one on the outline of the light hung under it, not those along the walls
     (the outlines), on no other surface, and none without holes."""
     mesh = build_mesh(load_with_contacts("cornell_box").with_element_sizes_scaled(2.0))
-    rims = hole_rims(mesh)
+    rims = rim_runs(mesh) != 0
     corners = mesh.corners.numpy()[:, :, [0, 2]]  # (T, 3, 2) on the floor and ceiling: x, z
     expected = np.zeros(len(rims), dtype=bool)
     for surface, outlines in (("floor", CORNELL_FOOTPRINTS.values()), ("ceiling", [CORNELL_LIGHT])):
@@ -524,7 +525,48 @@ def test_the_rims_of_the_footprints_are_found_and_nothing_else():
     np.testing.assert_array_equal(rims, expected)
     plain = hemirad.load_scene("cornell_box")
     plain.meshing.contacts = False
-    assert not hole_rims(build_mesh(plain)).any()  # no contacts: no holes
+    assert not rim_runs(build_mesh(plain)).any()  # no contacts: no holes
+
+
+def test_a_rims_straight_runs_are_the_sides_of_a_footprint_and_its_corners_stand_apart():
+    """``rim_runs`` with a turn under the footprints' corners: each run holds the elements
+    along one side of one block (each run's rim corners on one side's line), those touching
+    a footprint's corner are -1 (they shoot alone), and every side has its run."""
+    mesh = build_mesh(load_with_contacts("cornell_box").with_element_sizes_scaled(2.0))
+    runs = rim_runs(mesh, turn=30.0)
+    floor = (mesh.surface == mesh.surface_names.index("floor")).numpy()
+    corners = mesh.corners.numpy()[:, :, [0, 2]]
+    sides = [(np.asarray(a), np.asarray(b)) for footprint in CORNELL_FOOTPRINTS.values()
+             for a, b in zip(footprint, footprint[1:] + footprint[:1])]
+    vertices = np.concatenate([np.asarray(f) for f in CORNELL_FOOTPRINTS.values()])
+    outlines = list(CORNELL_FOOTPRINTS.values())
+    seen = []
+    for run in np.unique(runs[floor & (runs > 0)]):
+        points = corners[runs == run].reshape(-1, 2)
+        points = points[np.min([_distance_to_outline(points, f) for f in outlines], axis=0) < 1e-3]  # on a rim
+        lines = [k for k, side in enumerate(sides) if (_distance_to_outline(points, side) < 1e-3).all()]
+        assert len(lines) == 1, run  # one side of one block
+        seen.append(lines[0])
+    assert sorted(seen) == list(range(len(sides)))  # one run a side
+    at_corner = (np.linalg.norm(corners[:, :, None] - vertices[None, None], axis=-1) < 1e-3).any((1, 2))
+    assert at_corner[floor].any()
+    assert (runs[floor & at_corner] == -1).all()
+    assert (runs[floor & ~at_corner] >= 0).all()
+
+
+def test_a_patch_holds_one_run_of_a_rim_or_none():
+    """The default patches of a contact-meshed Cornell box: the elements along a footprint's
+    side shoot together only with others along that side, and those at its corners alone."""
+    scene = load_with_contacts("cornell_box")
+    mesh = build_mesh(scene)
+    patch = make_patches(scene, mesh, torch.device("cpu")).tree.patch.numpy()
+    owner = surface_objects(scene, mesh)[mesh.surface.numpy()]
+    runs = rim_runs(mesh, RIM_PATCHES * patch_sizes(scene, mesh, owner), RIM_TURN)
+    assert (runs > 0).any() and (runs < 0).any()
+    for p in np.unique(patch[runs != 0]):
+        members = runs[patch == p]
+        assert len(np.unique(members)) == 1 and (members[0] > 0 or len(members) == 1)
+    assert np.bincount(patch)[patch[runs > 0]].max() > 1  # runs do shoot together
 
 
 def test_a_block_beside_a_patched_conforming_floor_gets_the_floors_light():

@@ -101,7 +101,8 @@ def _run_sums(x: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarr
     return total
 
 
-def build_patches(mesh: Mesh, patch_size: np.ndarray, owner: np.ndarray | None = None) -> PatchTree:
+def build_patches(mesh: Mesh, patch_size: np.ndarray, owner: np.ndarray | None = None,
+                  apart: np.ndarray | None = None) -> PatchTree:
     """Group the elements of ``mesh`` into patches of about ``patch_size`` (T,) (a side length
     per element, 0 for an element that shoots on its own; a plane takes its elements'
     median) and build each patch's quadrant tree. ``owner`` (T,): the object each element
@@ -113,7 +114,8 @@ def build_patches(mesh: Mesh, patch_size: np.ndarray, owner: np.ndarray | None =
     corners = mesh.corners.cpu().numpy()
     patch_size = np.asarray(patch_size)
     plane_ids = mesh.plane_ids.cpu().numpy()
-    groups, alone = _plane_cells(plane_ids, centroids, normals, areas, patch_size)
+    apart = np.zeros(len(plane_ids), dtype=np.int64) if apart is None else np.asarray(apart)
+    groups, alone = _plane_cells(plane_ids, centroids, normals, areas, patch_size, apart)
     owner = mesh.surface.cpu().numpy() if owner is None else np.asarray(owner)
     groups += _curved_cells(alone, owner, centroids, normals, areas, corners, patch_size)
     return _grow_trees(mesh, groups)
@@ -180,7 +182,7 @@ def _grow_trees(mesh: Mesh, groups: list[tuple[np.ndarray, np.ndarray, np.ndarra
 
 
 def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarray, areas: np.ndarray,
-                 patch_size: np.ndarray) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], np.ndarray]:
+                 patch_size: np.ndarray, apart: np.ndarray) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], np.ndarray]:
     """The patches of the planes, as (members (k,), plane axes u, v): per plane, the elements
     whose centroids share a cell of the plane's square grid (its side the plane's median patch
     size, its origin the lowest element centroid); and (m,) the elements alone on their plane
@@ -207,6 +209,8 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
         origin = xy.min(0)
         cell = np.floor((xy - origin) / size).astype(np.int64)
         key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
+        _, key = np.unique(np.stack([apart[members], key], axis=1), axis=0, return_inverse=True)
+        key = key.reshape(-1)
         by_cell = np.argsort(key, kind="stable")
         cuts = np.flatnonzero(np.diff(key[by_cell])) + 1
         out += [(members[part], u, v) for part in np.split(by_cell, cuts)]
@@ -275,19 +279,23 @@ def _mean_plane_axes(elements: np.ndarray, normals: np.ndarray, areas: np.ndarra
     return plane_axes(normal / _lengths(normal)[:, None])
 
 
-def hole_rims(mesh: Mesh, least: np.ndarray | None = None) -> np.ndarray:
-    """(T,) bool: the elements of a planar surface with a corner on the rim of a hole in it:
-    where something stands on the surface (a block's footprint, left out by contact
-    meshing) or passes through it. A boundary loop is a hole where it runs clockwise seen
-    from the surface's front (its signed area, sum (a x b) . n over its edges as the
-    triangles give them, is negative); the outline runs counter-clockwise. With ``least``
-    (T,), only the holes whose rim is at least as long as the median of ``least`` over the
-    surface's elements."""
+def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -> np.ndarray:
+    """(T,) the straight runs of the rims of holes in planar surfaces that each element lies
+    along: where something stands on the surface (a block's footprint, left out by contact
+    meshing) or passes through it. 0: the element has no corner on a hole's rim; k > 0: its
+    corners on the rim lie on run k (numbered over the mesh), a stretch of the rim whose
+    edges turn at most ``turn`` degrees from its first's; -1: they lie on two runs (at a
+    corner of the footprint) or on a rim that is not one loop. A boundary loop is a hole
+    where it runs clockwise seen from the surface's front (its signed area, sum (a x b) . n
+    over its edges as the triangles give them, is negative); the outline runs
+    counter-clockwise. With ``least`` (T,), only the holes whose rim is at least as long as
+    the median of ``least`` over the surface's elements."""
     triangles = mesh.triangles.cpu().numpy()
     vertices = mesh.vertices.cpu().numpy()
     normals = mesh.normals.cpu().numpy()
     surface = mesh.surface.cpu().numpy()
-    rims = np.zeros(len(triangles), dtype=bool)
+    runs = np.zeros(len(triangles), dtype=np.int64)
+    cos_turn = np.cos(np.radians(turn))
     for s in np.unique(surface):
         own = np.flatnonzero(surface == s)
         if len(own) < 2 or np.abs(normals[own] - normals[own[0]]).max() > 1e-9:  # planar surfaces only
@@ -311,9 +319,50 @@ def hole_rims(mesh: Mesh, least: np.ndarray | None = None) -> np.ndarray:
         np.add.at(area, loop, signed)
         np.add.at(perimeter, loop, np.linalg.norm(vertices[b] - vertices[a], axis=1))
         shortest = 0.0 if least is None else float(np.median(least[own]))
-        hole_vertices = ends[np.isin(label, np.flatnonzero((area < 0) & (perimeter >= shortest)))]
-        rims[own] = np.isin(triangles[own], hole_vertices).any(1)
-    return rims
+        for hole in np.flatnonzero((area < 0) & (perimeter >= shortest)):
+            edges = np.flatnonzero(loop == hole)
+            on_rim = np.isin(triangles[own], ends[label == hole])  # (k, 3) each corner on this rim
+            touching = on_rim.any(1)
+            edge_run = _straight_runs(a[edges], b[edges], vertices, cos_turn)
+            if edge_run is None:  # not one loop: every element along it alone
+                runs[own[touching]] = -1
+                continue
+            first = runs.max() + 1
+            # each rim vertex's runs: the runs of the (two) rim edges that meet at it
+            vertex_runs = np.concatenate([np.stack([a[edges], edge_run], 1), np.stack([b[edges], edge_run], 1)])
+            for k in np.flatnonzero(touching):
+                met = np.unique(vertex_runs[np.isin(vertex_runs[:, 0], triangles[own[k]]), 1])
+                runs[own[k]] = first + met[0] if len(met) == 1 else -1
+    return runs
+
+
+def _straight_runs(a: np.ndarray, b: np.ndarray, vertices: np.ndarray, cos_turn: float) -> np.ndarray | None:
+    """The run (0, 1, ...) of each of the m directed edges a -> b (m,) of one boundary loop,
+    walked in order from its first edge after a turn: a run ends where an edge turns more
+    than ``turn`` (``cos_turn``) from the run's first. None where the edges are not one loop
+    (a vertex two edges leave)."""
+    after = dict(zip(a.tolist(), range(len(a))))
+    if len(after) != len(a):
+        return None
+    direction = vertices[b] - vertices[a]
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    order = [0]
+    while len(order) < len(a):
+        order.append(after.get(int(b[order[-1]]), -1))
+        if order[-1] < 0 or order[-1] == 0:
+            return None
+    if after.get(int(b[order[-1]]), -1) != 0:
+        return None
+    # start at the sharpest turn, so a run does not wrap round the loop's start
+    turns = np.einsum("ij,ij->i", direction[order], direction[np.roll(order, 1)])
+    order = np.roll(order, -int(np.argmin(turns)))
+    run = np.zeros(len(a), dtype=np.int64)
+    current, start = 0, order[0]
+    for e in order:
+        if direction[e] @ direction[start] < cos_turn:
+            current, start = current + 1, e
+        run[e] = current
+    return run
 
 
 def _each_alone(elements: np.ndarray, normals: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
