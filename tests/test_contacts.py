@@ -554,6 +554,23 @@ def test_a_rims_straight_runs_are_the_sides_of_a_footprint_and_its_corners_stand
     assert (runs[floor & ~at_corner] >= 0).all()
 
 
+def test_an_element_between_two_footprints_stands_apart():
+    """Two boxes 5 cm apart on a floor of 25 cm elements: a floor element touching both
+    rims belongs to neither's run (-1), the others along each side to their own."""
+    scene = box_on_floor_scene((1.0, 0.0, 1.0), (1.6, 0.5, 1.6))
+    scene.objects.append(Box((1.65, 0.0, 1.0), (2.25, 0.5, 1.6), "white", 0.25, name="box2"))
+    mesh = build_mesh(scene)
+    floor = (mesh.surface == mesh.surface_names.index("room.floor")).numpy()
+    runs = rim_runs(mesh, turn=30.0)
+    x = mesh.corners.numpy()[:, :, 0]
+    z = mesh.corners.numpy()[:, :, 2]
+    on_both = floor & ((np.abs(x - 1.6) < 1e-9) & (z > 1.0 - 1e-9) & (z < 1.6 + 1e-9)).any(1) & \
+        ((np.abs(x - 1.65) < 1e-9) & (z > 1.0 - 1e-9) & (z < 1.6 + 1e-9)).any(1)
+    assert on_both.any()
+    assert (runs[on_both] == -1).all()
+    assert (runs[floor] > 0).sum() > 8  # the outer sides' elements are in runs
+
+
 def test_a_patch_holds_one_run_of_a_rim_or_none():
     """The default patches of a contact-meshed Cornell box: the elements along a footprint's
     side shoot together only with others along that side, and those at its corners alone."""

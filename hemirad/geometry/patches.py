@@ -285,7 +285,7 @@ def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -
     meshing) or passes through it. 0: the element has no corner on a hole's rim; k > 0: its
     corners on the rim lie on run k (numbered over the mesh), a stretch of the rim whose
     edges turn at most ``turn`` degrees from its first's; -1: they lie on two runs (at a
-    corner of the footprint) or on a rim that is not one loop. A boundary loop is a hole
+    corner of the footprint), on the rims of two holes, or on a rim that is not one loop. A boundary loop is a hole
     where it runs clockwise seen from the surface's front (its signed area, sum (a x b) . n
     over its edges as the triangles give them, is negative); the outline runs
     counter-clockwise. With ``least`` (T,), only the holes whose rim is at least as long as
@@ -332,7 +332,8 @@ def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -
             vertex_runs = np.concatenate([np.stack([a[edges], edge_run], 1), np.stack([b[edges], edge_run], 1)])
             for k in np.flatnonzero(touching):
                 met = np.unique(vertex_runs[np.isin(vertex_runs[:, 0], triangles[own[k]]), 1])
-                runs[own[k]] = first + met[0] if len(met) == 1 else -1
+                alone = len(met) > 1 or runs[own[k]] != 0  # two runs, or two holes
+                runs[own[k]] = -1 if alone else first + met[0]
     return runs
 
 
