@@ -107,7 +107,8 @@ def build_patches(mesh: Mesh, patch_size: np.ndarray, owner: np.ndarray | None =
     per element, 0 for an element that shoots on its own; a plane takes its elements'
     median) and build each patch's quadrant tree. ``owner`` (T,): the object each element
     belongs to (default: its surface); a curved patch shoots as one only where no other
-    object passes through it (``_curved_cells``)."""
+    object passes through it (``_curved_cells``). ``apart`` (T,) int: elements of different
+    values never share a patch (default: all 0; ``rim_runs`` gives a footprint's sides)."""
     centroids = mesh.centroids.cpu().numpy()
     normals = mesh.normals.cpu().numpy()
     areas = mesh.areas.cpu().numpy()
@@ -182,11 +183,12 @@ def _grow_trees(mesh: Mesh, groups: list[tuple[np.ndarray, np.ndarray, np.ndarra
 
 
 def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarray, areas: np.ndarray,
-                 patch_size: np.ndarray, apart: np.ndarray) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], np.ndarray]:
+                 patch_size: np.ndarray, apart: np.ndarray
+                 ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], np.ndarray]:
     """The patches of the planes, as (members (k,), plane axes u, v): per plane, the elements
     whose centroids share a cell of the plane's square grid (its side the plane's median patch
-    size, its origin the lowest element centroid); and (m,) the elements alone on their plane
-    (those of curved surfaces), left to ``_curved_cells``."""
+    size, its origin the lowest element centroid) and a value of ``apart`` (T,); and (m,) the
+    elements alone on their plane (those of curved surfaces), left to ``_curved_cells``."""
     order = np.argsort(plane_ids, kind="stable")
     bounds = np.flatnonzero(np.diff(plane_ids[order])) + 1
     out, alone = [], []
@@ -285,10 +287,10 @@ def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -
     meshing) or passes through it. 0: the element has no corner on a hole's rim; k > 0: its
     corners on the rim lie on run k (numbered over the mesh), a stretch of the rim whose
     edges turn at most ``turn`` degrees from its first's; -1: they lie on two runs (at a
-    corner of the footprint), on the rims of two holes, or on a rim that is not one loop. A boundary loop is a hole
-    where it runs clockwise seen from the surface's front (its signed area, sum (a x b) . n
-    over its edges as the triangles give them, is negative); the outline runs
-    counter-clockwise. With ``least`` (T,), only the holes whose rim is at least as long as
+    corner of the footprint), on the rims of two holes, or on a rim that is not one loop. A
+    boundary loop is a hole where it runs clockwise seen from the surface's front (its
+    signed area, sum (a x b) . n over its edges as the triangles give them, is negative); the
+    outline runs counter-clockwise. With ``least`` (T,), only the holes whose rim is at least as long as
     the median of ``least`` over the surface's elements."""
     triangles = mesh.triangles.cpu().numpy()
     vertices = mesh.vertices.cpu().numpy()
@@ -321,8 +323,7 @@ def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -
         shortest = 0.0 if least is None else float(np.median(least[own]))
         for hole in np.flatnonzero((area < 0) & (perimeter >= shortest)):
             edges = np.flatnonzero(loop == hole)
-            on_rim = np.isin(triangles[own], ends[label == hole])  # (k, 3) each corner on this rim
-            touching = on_rim.any(1)
+            touching = np.isin(triangles[own], ends[label == hole]).any(1)  # a corner on this rim
             edge_run = _straight_runs(a[edges], b[edges], vertices, cos_turn)
             if edge_run is None:  # not one loop: every element along it alone
                 runs[own[touching]] = -1
@@ -339,9 +340,9 @@ def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -
 
 def _straight_runs(a: np.ndarray, b: np.ndarray, vertices: np.ndarray, cos_turn: float) -> np.ndarray | None:
     """The run (0, 1, ...) of each of the m directed edges a -> b (m,) of one boundary loop,
-    walked in order from its first edge after a turn: a run ends where an edge turns more
-    than ``turn`` (``cos_turn``) from the run's first. None where the edges are not one loop
-    (a vertex two edges leave)."""
+    walked in order from the edge after its sharpest turn: a run ends where an edge turns
+    more than ``turn`` (``cos_turn``) from the run's first. None where the edges are not one
+    loop (a vertex two edges leave, or several loops)."""
     after = dict(zip(a.tolist(), range(len(a))))
     if len(after) != len(a):
         return None
