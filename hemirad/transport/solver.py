@@ -40,6 +40,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 23: a footprint's rim shoots by its straight stretches (alone at its corners), and a
+#: curved cap another object reaches into is made from smaller cubes, not its elements;
 #: 22: near-field pairs half a source side apart or more take one Gauss rule over each
 #: whole source edge;
 #: 21: with patches, nodes that emit nothing draw at ``reflector_resolution`` (auto: half
@@ -59,7 +61,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 22
+ARITHMETIC = 23
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
