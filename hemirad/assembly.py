@@ -32,7 +32,7 @@ AUTO_PATCH_ELEMENTS = 2.0
 #: under 2%, the elements' own error being the larger there.
 AUTO_PATCH_SCENE = 0.15
 #: With contacts meshed, the elements round a footprint whose rim is at least this many patch
-#: sides long shoot apart from the others (``make_patches``),
+#: sides long shoot apart from the others (``rim_stretches``),
 RIM_PATCHES = 2.0
 #: together only along a stretch of the rim that turns at most this many degrees.
 RIM_TURN = 30.0
@@ -93,21 +93,9 @@ def make_patches(scene: Scene, mesh: Mesh, device: torch.device) -> PatchShooter
     """The patches of the initial ``mesh`` as ``scene.solver`` asks, with the shooter tests."""
     owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]  # (T,) each element's object
     size = patch_sizes(scene, mesh, owner)
-    apart = None
-    if scene.meshes_contacts:
-        # Beside what stands on a surface (a footprint's rim) its elements shoot only with
-        # those along the same straight stretch of the rim (and alone at its corners): a floor
-        # patch reaching round a block's corner, or over its rim, shoots from a centroid that
-        # sees the block's side otherwise than the rim does. Cornell box at 8 cm elements,
-        # contacts meshed: the tall block's front 11% dark with such patches, 0.3% off every
-        # element shooting; the answer's second round relMSE 0.00205 -> 0.00039. On a refined
-        # mesh a rim element's children shoot as one patch (``refined_patches``): against each
-        # refined rim element alone, 6.9 s for 0.00039 instead of 11.0 s for 0.00037. Only
-        # footprints whose rim is at least RIM_PATCHES patch sides long: the office's desk and
-        # chair legs (rims of 0.2 m among 0.3 m patches) changed nothing but doubled its
-        # rounds' seconds.
-        apart = rim_runs(mesh, RIM_PATCHES * size, RIM_TURN)
-        size[apart < 0] = 0.0
+    apart = rim_stretches(scene, mesh, size)
+    if apart is not None:
+        size[apart < 0] = 0.0  # at a footprint's corners
     tree = build_patches(mesh, size, owner, apart)
     return PatchShooters(tree, device, shooter_test(scene),
                          source_corners=mesh.corners, eye_level=scene.emitter_eye_level)
@@ -118,6 +106,24 @@ def shooter_test(scene: Scene) -> ShooterTest:
     ``solver.shooter_split``."""
     test = hidden_centroid_test()
     return test if scene.solver.shooter_split is None else either(test, point_source_test(scene.solver.shooter_split))
+
+
+def rim_stretches(scene: Scene, mesh: Mesh, size: np.ndarray) -> np.ndarray | None:
+    """(T,) where contacts are meshed, the straight stretches of the footprints' rims that
+    the elements of ``mesh`` lie along (``geometry.patches.rim_runs``, turning at most
+    ``RIM_TURN``; -1 at a corner), for patches of sides ``size`` (T,); None elsewhere.
+
+    Beside what stands on a surface its elements shoot only with those along the same
+    stretch of the rim, and alone at its corners: a floor patch reaching round a block's
+    corner, or over its rim, shoots from a centroid that sees the block's side otherwise
+    than the rim does. Cornell box at 8 cm elements, contacts meshed: the tall block's front
+    11% dark with such patches, 0.3% off every element shooting; the answer's second round
+    relMSE 0.00205 -> 0.00039. On a refined mesh a rim element's children shoot as one patch
+    (``refined_patches``): against each refined rim element alone, 6.9 s for 0.00039
+    instead of 11.0 s for 0.00037. Only footprints whose rim is at least ``RIM_PATCHES``
+    patch sides long: the office's desk and chair legs (rims of 0.2 m among 0.3 m patches)
+    changed nothing but doubled its rounds' seconds."""
+    return rim_runs(mesh, RIM_PATCHES * size, RIM_TURN) if scene.meshes_contacts else None
 
 
 def refined_patches(scene: Scene, solver: ProgressiveSolver, saved: dict | None = None) -> PatchShooters:

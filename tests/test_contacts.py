@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import hemirad
-from hemirad.assembly import RIM_PATCHES, RIM_TURN, make_patches, patch_sizes
+from hemirad.assembly import make_patches, patch_sizes, rim_stretches
 from hemirad.core.errors import SceneError
 from hemirad.evaluation.surface_points import elements_at
 from hemirad.geometry.mesh import barycentric
@@ -578,7 +578,7 @@ def test_a_patch_holds_one_run_of_a_rim_or_none():
     mesh = build_mesh(scene)
     patch = make_patches(scene, mesh, torch.device("cpu")).tree.patch.numpy()
     owner = surface_objects(scene, mesh)[mesh.surface.numpy()]
-    runs = rim_runs(mesh, RIM_PATCHES * patch_sizes(scene, mesh, owner), RIM_TURN)
+    runs = rim_stretches(scene, mesh, patch_sizes(scene, mesh, owner))
     assert (runs > 0).any() and (runs < 0).any()
     for p in np.unique(patch[runs != 0]):
         members = runs[patch == p]
