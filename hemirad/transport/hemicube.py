@@ -110,35 +110,41 @@ def _frustum(left, right, bottom, top, near, far) -> np.ndarray:
     ])
 
 
-_FORWARD_AXES = np.asarray([forward for forward, _, _, _ in FACES], dtype=np.float64)  # (5, 3)
-_BELOW = len(FACES)  # the region of a vertex below the horizon
+# Each face's view cone as the intersection of half-spaces a . d >= 0 (a in the local frame):
+# the top's z >= |x| and z >= |y|, a side's (+x here) x >= |y|, x >= z and z >= 0 (sides see
+# only the upper half); z >= 0 holds in the top's cone too, and belongs to all five.
+_HALF_SPACES = np.array([
+    (-1, 0, 1), (1, 0, 1), (0, -1, 1), (0, 1, 1),  # 0-3: z - x, z + x, z - y, z + y
+    (1, -1, 0), (1, 1, 0), (-1, -1, 0), (-1, 1, 0),  # 4-7: x - y, x + y, -x - y, y - x
+    (1, 0, -1), (-1, 0, -1), (0, 1, -1), (0, -1, -1),  # 8-11: x - z, -x - z, y - z, -y - z
+    (0, 0, 1),  # 12: z
+], dtype=np.float64)
+_FACE_HALF_SPACES = ((0, 1, 2, 3, 12), (4, 5, 8, 12), (6, 7, 9, 12), (5, 7, 10, 12), (4, 6, 11, 12))  # as FACES
+_FACE_MASKS = np.array([sum(1 << h for h in spaces) for spaces in _FACE_HALF_SPACES], dtype=np.int32)
+_HALF_SPACE_BITS = (1 << np.arange(len(_HALF_SPACES))).astype(np.int32)
 
 
 def face_visibility(local: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Which triangles may cover pixels of each face: (5, T) bool.
 
-    The faces' view cones (the directions whose largest component along the five face axes
-    is that face's) are convex and tile the half-space above the shooter. A triangle whose
-    three vertices lie inside one cone lies inside it, so only that face can see it; one
-    whose vertices all lie below the horizon is seen by none; any other (across cones, or
-    with a vertex within a margin of a cone's boundary) is drawn by every face. The margin
-    is far above float32 rounding in GL's own clipping, and a face's pixel centres lie half
-    a pixel inside its cone, so the test never drops a triangle that GL would draw. (Per
-    vertex it costs five dot products; clipping each face's frustum planes, twenty-five.)
+    A face's view cone is an intersection of half-spaces (``_HALF_SPACES``), so a triangle
+    whose three vertices all lie outside one of them lies outside it: that face cannot see
+    it. Every other triangle is drawn by the face: one inside a cone is drawn by that face
+    alone, one across two cones by those two (not by all five), one below the horizon by
+    none. A vertex counts as outside only beyond a margin far above float32 rounding in GL's
+    own clipping, and a face's pixel centres lie half a pixel inside its cone, so the test
+    never drops a triangle that GL would draw. Per vertex it costs thirteen dot products; per
+    triangle two ANDs of bit masks.
 
     Args:
         local: (V, 3) float64 vertex positions relative to the eye, in the local frame.
         triangles: (T, 3) vertex indices.
     """
     margin = 1e-5 * (np.abs(local) @ np.ones(3))  # (V,)
-    along = _FORWARD_AXES @ local.T  # (5, V); faces first: the reductions below run across rows
-    over = along > along.max(axis=0) - margin  # the axes within the margin of the largest
-    region = np.where(over.sum(axis=0) == 1, over.argmax(axis=0), -1)  # (V,) -1: on a boundary
-    region[local[:, 2] < -margin] = _BELOW
-    r = region.take(triangles)  # (T, 3)
-    first = r[:, 0]
-    everywhere = (first != r[:, 1]) | (first != r[:, 2]) | (first < 0)
-    return np.stack([everywhere | (first == f) for f in range(len(FACES))])
+    outside = (local @ _HALF_SPACES.T < -margin[:, None]).astype(np.int32) @ _HALF_SPACE_BITS  # (V,) bits
+    corners = outside.take(triangles)  # (T, 3)
+    common = corners[:, 0] & corners[:, 1] & corners[:, 2]  # the half-spaces all three lie outside
+    return (common[None, :] & _FACE_MASKS[:, None]) == 0
 
 
 class Hemicube:
@@ -196,25 +202,28 @@ class Hemicube:
         self._vertices = vertices.cpu().numpy().astype(np.float64, copy=False)
         self._triangles = triangles.cpu().numpy().astype(np.uint32)
         _write(self._vbo, self._vertices.astype(np.float32))
-        if not self.cull:  # one list, drawn whole by every face
-            _write(self._ibo, self._triangles)
 
     def release(self) -> None:
         for obj in (self._vao, self._vbo, self._ibo, self.fbo, self._color, self._depth, self.program):
             obj.release()
 
-    def _draw_lists(self, eye: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
-        """The triangles each face draws: their ids in drawing order (N,), and per face the
-        (first, count) range of that list it draws."""
+    def draw_lists(self, eye: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
+        """The triangles each face of the hemicube at ``eye`` (3,) with ``frame`` (3, 3) draws:
+        their ids in drawing order (N,), and per face the (first, count) range of that list it
+        draws. CPU work alone once the mesh is uploaded: a caller makes the next hemicube's
+        lists while the rasteriser still works on the one before (``submit``)."""
+        start = time.perf_counter()
+        if self._pending is not None:
+            self._upload()
         T = self.num_triangles
         if not self.cull:
             return np.arange(T), [(0, T)] * len(FACES)
         visible = face_visibility((self._vertices - eye) @ frame.T, self._triangles)
-        ids = [np.flatnonzero(v) for v in visible]
-        firsts = np.cumsum([0] + [len(i) for i in ids])
-        ids = np.concatenate(ids)
-        _write(self._ibo, self._triangles[ids])
-        return ids, [(int(firsts[f]), int(firsts[f + 1] - firsts[f])) for f in range(len(FACES))]
+        counts = np.count_nonzero(visible, axis=1)
+        firsts = np.concatenate([[0], np.cumsum(counts)])
+        ids = np.nonzero(visible)[1]  # face by face, each in the triangles' order
+        self.profiler.add("raster", time.perf_counter() - start)
+        return ids, [(int(firsts[f]), int(counts[f])) for f in range(len(FACES))]
 
     def render(self, eye: np.ndarray, frame: np.ndarray, near: float, far: float) -> tuple[np.ndarray, np.ndarray]:
         """Draw the five faces seen from ``eye``.
@@ -232,18 +241,19 @@ class Hemicube:
         self.submit(eye, frame, near, far)
         return self.collect()
 
-    def submit(self, eye: np.ndarray, frame: np.ndarray, near: float, far: float) -> None:
+    def submit(self, eye: np.ndarray, frame: np.ndarray, near: float, far: float,
+               lists: tuple[np.ndarray, list[tuple[int, int]]] | None = None) -> None:
         """The first half of ``render``: cull and draw, and let the driver start (``_flush``)
         without waiting for it; ``collect`` then waits and reads the atlas back. Between the
         two the caller's own work runs beside the rasteriser's threads (llvmpipe). One render
-        at a time: ``collect`` before the next ``submit``."""
+        at a time: ``collect`` before the next ``submit``. ``lists``: this placement's
+        ``draw_lists``, when made already."""
         if self._submitted is not None:
             raise RuntimeError("a hemicube was submitted and not collected")
-        start = time.perf_counter()
-        if self._pending is not None:
-            self._upload()
         eye = np.asarray(eye, dtype=np.float64)
-        ids, ranges = self._draw_lists(eye, frame)
+        ids, ranges = self.draw_lists(eye, frame) if lists is None else lists
+        start = time.perf_counter()
+        _write(self._ibo, self._triangles[ids])
         ctx = self.ctx
         self.fbo.use()
         ctx.enable(moderngl.DEPTH_TEST)

@@ -93,10 +93,11 @@ class HemicubeRenderer:
         if key in self._ready or len(self._ready) >= READY_MAX or (
                 self._prefetched is not None and self._prefetched[0] == key):
             return
-        self._read_back()
         eye, frame = self._placed(point, normal, tangent)
+        lists = self.hemicube.draw_lists(eye, frame)  # while the one before is still being drawn
+        self._read_back()
         self.renders += 1
-        self.hemicube.submit(eye, frame, self.near, self.far)
+        self.hemicube.submit(eye, frame, self.near, self.far, lists)
         self._prefetched = (key, eye, frame)
 
     def render_at(self, point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> HemicubeView:
@@ -104,13 +105,16 @@ class HemicubeRenderer:
         turned by the in-plane ``tangent`` (3,), and sum its form factors to every element
         (the one ``prefetch_at`` started, when asked for the same)."""
         key = _key(point, normal, tangent)
-        if key not in self._ready:
-            self._read_back()  # it is this one, or the framebuffer is needed for this one
+        if self._prefetched is not None and self._prefetched[0] == key:
+            self._read_back()
         if key in self._ready:
             return self._view(*self._ready.pop(key))
         eye, frame = self._placed(point, normal, tangent)
+        lists = self.hemicube.draw_lists(eye, frame)  # while the one prefetched, if any, is drawn
+        self._read_back()  # the framebuffer is needed for this one
         self.renders += 1
-        return self._view(self.hemicube.render(eye, frame, self.near, self.far), eye, frame)
+        self.hemicube.submit(eye, frame, self.near, self.far, lists)
+        return self._view(self.hemicube.collect(), eye, frame)
 
     def _read_back(self) -> None:
         """Wait for the prefetched hemicube, if any, and keep its atlas as read."""
