@@ -56,6 +56,10 @@ class FormFactorRows:
     def __len__(self) -> int:
         return len(self._rows)
 
+    def __contains__(self, shooter: Hashable) -> bool:
+        """Whether ``shooter``'s row is kept (without counting as a use, as ``get`` does)."""
+        return shooter in self._rows
+
     def get(self, shooter: Hashable, num_elements: int) -> torch.Tensor | None:
         """(T,) the dense row of ``shooter`` (T = ``num_elements``), or None when it is not kept."""
         row = self._rows.get(shooter)

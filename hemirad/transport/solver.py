@@ -487,9 +487,19 @@ class ProgressiveSolver:
             nodes = patches.cut(patch, self.render_and_keep, self.mesh.corners)
             while making and making[0][1].done():  # taken in in order, so the numbers do not depend on timing
                 self._join_group(making.popleft())
-            for node in nodes:  # rows not kept are made with the group's (``_make_group``)
+            # rows not kept are made with the group's (``_make_group``); the nodes of a split
+            # patch that its cut did not draw are drawn here, each while the one before is used
+            drawn = [node for node in nodes if node not in self.rows and node not in self._views]
+            following = dict(zip(drawn, drawn[1:]))
+            if drawn:
+                self._prefetch_node(drawn[0])
+            for node in nodes:
                 F, view = self.rows.get(node, self.mesh.num_elements), self._views.pop(node, None)
-                new[node] = (F, self.render(node) if F is None and view is None else view)
+                if F is None and view is None:
+                    if node in following:
+                        self._prefetch_node(following[node])
+                    view = self.render(node)
+                new[node] = (F, view)
             # the views of nodes that split into their children: each holds a hemicube's pixels
             self._views.clear()
             if i + 1 < len(order) and order[i + 1] // NEAR_BATCH == patch // NEAR_BATCH:
@@ -526,8 +536,11 @@ class ProgressiveSolver:
         """Start drawing the hemicube of ``patch``'s root if its cut will render it (the first
         time it shoots), so that the rasteriser works while this thread does."""
         if patch not in self.patches.cuts:
-            root = int(self.patches.tree.root[patch])
-            self._renderer_of(root).prefetch_at(*self._placement(root))
+            self._prefetch_node(int(self.patches.tree.root[patch]))
+
+    def _prefetch_node(self, node: int) -> None:
+        """Start drawing the hemicube of ``node`` (``HemicubeRenderer.prefetch_at``)."""
+        self._renderer_of(node).prefetch_at(*self._placement(node))
 
     def _shot_form_factors(self, shooter: int, shot_power: torch.Tensor) -> torch.Tensor:
         """(T,) F_sj of a shot of ``shot_power`` (3,) from ``shooter``: its kept or rendered row,
