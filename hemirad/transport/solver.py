@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable, Protocol
@@ -68,12 +67,8 @@ ARITHMETIC = 23
 DEFAULT_CACHE_BYTES = 256 << 20
 #: A sweep makes the near fields of this many patches' nodes at once (``nearfield.near_fields``;
 #: a group, in patch index order), keeping their hemicubes' views until then (1.7 MB each at
-#: resolution 256; ``GROUPS_AHEAD`` + 1 groups' at most).
+#: resolution 256; two groups' at most).
 NEAR_BATCH = 32
-#: Groups the worker may have queued or in hand while this thread draws the next: the groups'
-#: work is uneven (a curved object's many small patches make more near fields), and with one
-#: the drawing thread waited at the joins for what two lets the worker catch up on.
-GROUPS_AHEAD = 2
 
 
 def received_radiosity(form_factors: torch.Tensor, shot_power: torch.Tensor,
@@ -480,13 +475,14 @@ class ProgressiveSolver:
         groups = sorted({patch // NEAR_BATCH for patch in shooting.tolist()} - transport.groups)
         order = [patch for g in groups for patch in range(g * NEAR_BATCH, min((g + 1) * NEAR_BATCH, tree.num_patches))]
         new: dict[int, tuple[torch.Tensor, HemicubeView | None]] = {}  # the group's nodes: (F, view)
-        making = deque()  # the groups before, oldest first: (their nodes, what the worker makes of them)
+        making = None  # the group before's: (its nodes, what the worker makes of them)
         for i, patch in enumerate(order):
             if i + 1 < len(order):  # drawn while this patch's hemicube is decoded and used
                 self._prefetch(order[i + 1])
             nodes = patches.cut(patch, self.render_and_keep, self.mesh.corners)
-            while making and making[0][1].done():  # taken in in order, so the numbers do not depend on timing
-                self._join_group(making.popleft())
+            if making is not None and making[1].done():
+                self._join_group(making)
+                making = None
             # rows not kept are made with the group's (``_make_group``); the nodes of a split
             # patch that its cut did not draw are drawn here, each while the one before is used
             drawn = [node for node in nodes if node not in self.rows and node not in self._views]
@@ -505,13 +501,11 @@ class ProgressiveSolver:
             if i + 1 < len(order) and order[i + 1] // NEAR_BATCH == patch // NEAR_BATCH:
                 continue
             transport.groups.add(patch // NEAR_BATCH)
-            while len(making) >= GROUPS_AHEAD:
-                self._join_group(making.popleft())
-            making.append((new, self._make_group(new)))
-            new = {}
+            if making is not None:
+                self._join_group(making)
+            making, new = (new, self._make_group(new)), {}
             if i + 1 == len(order):
-                while making:
-                    self._join_group(making.popleft())
+                self._join_group(making)
             if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
                 warnings.warn(f"the light kept for sweeps outgrew solver.cache_mb ({self.rows.budget_bytes >> 20} MB) "
                               f"at {self.mesh.num_elements} elements: from here patches shoot one at a time, drawing "
