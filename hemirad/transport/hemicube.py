@@ -215,10 +215,10 @@ class Hemicube:
         start = time.perf_counter()
         if self._pending is not None:
             self._upload()
-        T = self.num_triangles
-        if not self.cull:
-            return np.arange(T), [(0, T)] * len(FACES)
-        visible = face_visibility((self._vertices - eye) @ frame.T, self._triangles)
+        if self.cull:
+            visible = face_visibility((self._vertices - eye) @ frame.T, self._triangles)
+        else:  # every face draws every triangle
+            visible = np.ones((len(FACES), self.num_triangles), dtype=bool)
         counts = np.count_nonzero(visible, axis=1)
         firsts = np.concatenate([[0], np.cumsum(counts)])
         ids = np.nonzero(visible)[1]  # face by face, each in the triangles' order
