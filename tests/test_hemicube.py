@@ -37,9 +37,11 @@ def test_culled_render_gives_the_unculled_atlas_bit_for_bit(name):
             seen_full = full.render(shooter)
             assert torch.equal(seen.element, seen_full.element) and torch.equal(seen.front, seen_full.front), shooter
             assert torch.equal(culled.from_element(shooter), full.from_element(shooter))
-            # and the point of it: far fewer triangles drawn than five times all of them
+            # and the point of it: far fewer triangles drawn than five times all of them, a
+            # triangle across two cones by those two faces alone (1.05-1.07 times the
+            # triangles here; 1.28-1.34 when such a triangle was drawn by all five faces)
             assert full.hemicube.drawn_triangles == 5 * mesh.num_elements
-            assert drawn < 2.5 * mesh.num_elements
+            assert drawn < 1.2 * mesh.num_elements
     finally:
         culled.close()
         full.close()
