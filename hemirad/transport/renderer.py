@@ -93,12 +93,7 @@ class HemicubeRenderer:
         if key in self._ready or len(self._ready) >= READY_MAX or (
                 self._prefetched is not None and self._prefetched[0] == key):
             return
-        eye, frame = self._placed(point, normal, tangent)
-        lists = self.hemicube.draw_lists(eye, frame)  # while the one before is still being drawn
-        self._read_back()
-        self.renders += 1
-        self.hemicube.submit(eye, frame, self.near, self.far, lists)
-        self._prefetched = (key, eye, frame)
+        self._prefetched = (key, *self._submit(point, normal, tangent))
 
     def render_at(self, point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> HemicubeView:
         """Render the hemicube at ``point`` (3,) on a surface of unit ``normal`` (3,), its frame
@@ -109,12 +104,19 @@ class HemicubeRenderer:
             self._read_back()
         if key in self._ready:
             return self._view(*self._ready.pop(key))
+        eye, frame = self._submit(point, normal, tangent)
+        return self._view(self.hemicube.collect(), eye, frame)
+
+    def _submit(self, point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Draw the hemicube at this placement (``Hemicube.submit``) and return its eye and
+        frame: culled while the one prefetched before, if any, is still being drawn, which is
+        then read back (``_read_back``) to free the framebuffer."""
         eye, frame = self._placed(point, normal, tangent)
-        lists = self.hemicube.draw_lists(eye, frame)  # while the one prefetched, if any, is drawn
-        self._read_back()  # the framebuffer is needed for this one
+        lists = self.hemicube.draw_lists(eye, frame)
+        self._read_back()
         self.renders += 1
         self.hemicube.submit(eye, frame, self.near, self.far, lists)
-        return self._view(self.hemicube.collect(), eye, frame)
+        return eye, frame
 
     def _read_back(self) -> None:
         """Wait for the prefetched hemicube, if any, and keep its atlas as read."""
