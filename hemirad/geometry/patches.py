@@ -211,8 +211,9 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
         origin = xy.min(0)
         cell = np.floor((xy - origin) / size).astype(np.int64)
         key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
-        _, key = np.unique(np.stack([apart[members], key], axis=1), axis=0, return_inverse=True)
-        key = key.reshape(-1)
+        if apart[members].any():  # cells split by ``apart`` (all 0: the cells as they are)
+            _, key = np.unique(np.stack([apart[members], key], axis=1), axis=0, return_inverse=True)
+            key = key.reshape(-1)
         by_cell = np.argsort(key, kind="stable")
         cuts = np.flatnonzero(np.diff(key[by_cell])) + 1
         out += [(members[part], u, v) for part in np.split(by_cell, cuts)]
