@@ -9,6 +9,7 @@ from hemirad.scene.meshing import build_mesh
 from hemirad.transport.hemicube import FACES, face_visibility
 from hemirad.assembly import make_solver
 from hemirad.transport.renderer import HemicubeRenderer
+from hemirad.transport import solver as solver_module
 from hemirad.transport.solver import ProgressiveSolver
 
 from patches import refined_solve
@@ -81,24 +82,39 @@ def test_a_prefetched_hemicube_is_the_one_rendered_when_asked_for():
         direct.close()
 
 
+def _solve_office_in_sweeps() -> ProgressiveSolver:
+    scene = hemirad.load_scene("office")
+    scene.solver.resolution, scene.solver.unshot_fraction = 64, 1e-2
+    solver = make_solver(scene)
+    try:
+        solver.run(scene.solver.max_shots, scene.solver.unshot_fraction)
+    finally:
+        solver.close()
+    return solver
+
+
 def test_a_sweep_gives_the_same_numbers_with_and_without_prefetching(monkeypatch):
     # office: some of its patches split, and their nodes are drawn prefetched as well
-    def solve():
-        scene = hemirad.load_scene("office")
-        scene.solver.resolution, scene.solver.unshot_fraction = 64, 1e-2
-        solver = make_solver(scene)
-        try:
-            solver.run(scene.solver.max_shots, scene.solver.unshot_fraction)
-        finally:
-            solver.close()
-        return solver
-    prefetched = solve()
+    prefetched = _solve_office_in_sweeps()
     monkeypatch.setattr(ProgressiveSolver, "_prefetch_node", lambda self, node: None)
-    drawn_when_asked = solve()
+    drawn_when_asked = _solve_office_in_sweeps()
     assert prefetched.sweep_count > 1
     assert prefetched.patches.shooter_splits > 0
     assert torch.equal(prefetched.state.radiosity, drawn_when_asked.state.radiosity)
     assert prefetched.hemicubes_rendered == drawn_when_asked.hemicubes_rendered
+
+
+def test_a_sweep_gives_the_same_numbers_however_far_its_worker_lags(monkeypatch):
+    # the worker takes its groups' light in when it can; the solver in group order
+    joined = []
+    join = ProgressiveSolver._join_group
+    monkeypatch.setattr(ProgressiveSolver, "_join_group", lambda self, making: joined.append(1) or join(self, making))
+    behind = _solve_office_in_sweeps()
+    assert len(joined) > 3  # groups enough for the worker to fall behind
+    monkeypatch.setattr(solver_module, "GROUPS_AHEAD", 0)  # each group taken in as soon as it is sent
+    in_step = _solve_office_in_sweeps()
+    assert torch.equal(behind.state.radiosity, in_step.state.radiosity)
+    assert torch.equal(behind.state.unshot, in_step.state.unshot)
 
 
 def _local(points):
