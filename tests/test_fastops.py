@@ -1,7 +1,8 @@
 """The fast idioms give what the plain torch calls they replace give, bit for bit."""
+import numpy as np
 import torch
 
-from hemirad.core.fastops import flatnonzero, marked_positions, row_sums, rows_touching, take_or_none
+from hemirad.core.fastops import cross3, flatnonzero, marked_positions, row_sums, rows_touching, take_or_none
 
 
 def test_row_sums_is_sum_over_the_three_columns():
@@ -29,3 +30,12 @@ def test_marked_positions_and_rows_touching_are_their_torch_forms():
     assert torch.equal(take_or_none(ids, index), torch.where(index >= 0, ids[index.clamp(min=0)], -1))
     rows = torch.randint(0, 300, (1000, 3), generator=g)
     assert torch.equal(rows_touching(rows, table), torch.nonzero(table[rows].any(dim=1)).reshape(-1))
+
+
+def test_cross3_is_numpy_cross_bit_for_bit():
+    rng = np.random.default_rng(0)
+    for shape_a, shape_b in [((50, 3), (50, 3)), ((3,), (3,)), ((4, 1, 3), (4, 3, 3)), ((6, 3), (3,))]:
+        a, b = rng.normal(size=shape_a), rng.normal(size=shape_b)
+        assert np.array_equal(cross3(a, b), np.cross(a, b))
+        assert cross3(a.astype(np.float32), b.astype(np.float32)).dtype == np.float32
+    assert cross3([1, 0, 0], [0, 1, 0]).tolist() == [0, 0, 1]  # lists, ints: x cross y is z

@@ -85,3 +85,14 @@ def take_or_none(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     if on_host(index):  # a leading -1 takes the -1s
         return torch.from_numpy(np.concatenate(([-1], table.numpy()))[index.numpy() + 1])
     return torch.where(index >= 0, table.index_select(0, index.clamp(min=0)), -1)
+
+
+def cross3(a, b) -> np.ndarray:
+    """``np.cross`` of (..., 3) arrays, broadcast against each other: the same products and
+    differences in the same order, so the same numbers bit for bit, without its argument
+    handling (about 40 us a call, which the meshing's and the hemicubes' thousands of calls on
+    a few vectors each paid many times over)."""
+    a, b = np.asarray(a), np.asarray(b)
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)

@@ -31,6 +31,7 @@ import shapely
 from shapely.geometry import LineString, Polygon
 from shapely.geometry.base import BaseGeometry
 
+from hemirad.core.fastops import cross3
 from hemirad.geometry.patches import plane_axes
 
 #: A triangle faces the plane when its normal is within 60 degrees of the plane's reversed normal.
@@ -74,7 +75,7 @@ def planar_frame(vertices: np.ndarray, triangles: np.ndarray, tolerance: float) 
     """The plane of a surface (V, 3) vertices and (T, 3) triangles, or None when it is not
     planar: a vertex further than ``tolerance`` off the plane, or a triangle folded back."""
     corners = vertices[triangles]  # (T, 3, 3)
-    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    cross = cross3(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     total = cross.sum(0)
     length = float(np.linalg.norm(total))
     if not length > 0:

@@ -20,6 +20,7 @@ import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from hemirad.core.fastops import cross3
 from hemirad.geometry.mesh import Mesh
 
 
@@ -78,9 +79,9 @@ def plane_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     or of each of the (k, 3) ``normal``, as two (k, 3)."""
     normal = np.asarray(normal, dtype=np.float64)
     helper = np.eye(3)[np.argmin(np.abs(normal), axis=-1)]  # the world axis least along the normal
-    u = np.cross(helper, normal)
+    u = cross3(helper, normal)
     u /= _lengths(u)[..., None]
-    return u, np.cross(normal, u)
+    return u, cross3(normal, u)
 
 
 def _lengths(x: np.ndarray) -> np.ndarray:
@@ -317,7 +318,7 @@ def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -
         graph = coo_matrix((np.ones(len(a)), (ia, ib)), shape=(len(ends), len(ends)))
         count, label = connected_components(graph, directed=False)
         loop = label[ia]
-        signed = np.einsum("ij,j->i", np.cross(vertices[a], vertices[b]), normals[own[0]])
+        signed = np.einsum("ij,j->i", cross3(vertices[a], vertices[b]), normals[own[0]])
         area, perimeter = np.zeros(count), np.zeros(count)
         np.add.at(area, loop, signed)
         np.add.at(perimeter, loop, np.linalg.norm(vertices[b] - vertices[a], axis=1))

@@ -29,6 +29,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from hemirad.core.fastops import cross3
+
 #: The rays' directions: unit vectors along no axis and no face of an axis-aligned box.
 DIRECTIONS = np.array([[0.5381, 0.7164, 0.4437], [-0.6125, 0.3261, 0.7203], [0.2897, -0.8391, 0.4602]])
 DIRECTIONS = DIRECTIONS / np.linalg.norm(DIRECTIONS, axis=1, keepdims=True)
@@ -119,9 +121,9 @@ def closed_solids(shells: list[tuple[np.ndarray, np.ndarray]], tolerance: float)
     open_component[per_edge[unbalanced] // len(unique)] = True
     corners = vertices[triangles]
     volume = np.bincount(label, weights=np.einsum("ij,ij->i", corners[:, 0],
-                                                  np.cross(corners[:, 1], corners[:, 2])) / 6.0, minlength=count)
+                                                  cross3(corners[:, 1], corners[:, 2])) / 6.0, minlength=count)
     area = np.bincount(label, weights=0.5 * np.linalg.norm(
-        np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1), minlength=count)
+        cross3(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1), minlength=count)
     # no thicker than the tolerance (a quad and its reverse, back to back): no inside
     closed = np.flatnonzero(~open_component & (volume > tolerance * area))
     by_component = np.argsort(label, kind="stable")
@@ -203,7 +205,7 @@ def _crossings(points: np.ndarray, corners: np.ndarray, direction: np.ndarray, p
     cross = lambda x, y: x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0]  # noqa: E731
     w = np.stack([cross(b, d), cross(d, a), cross(a, b)], axis=1)  # (M, 3): the point's side of each edge
     hit = (w > 0).all(axis=1) | (w < 0).all(axis=1)  # strictly inside the triangle, as seen along the ray
-    normal = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+    normal = cross3(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
     facing = normal @ direction
     ahead = np.einsum("mi,mi->m", c[:, 0] - p, normal) * np.sign(facing) > 0
     sign = np.sign(facing).astype(np.int64) * (hit & ahead)
@@ -213,11 +215,11 @@ def _crossings(points: np.ndarray, corners: np.ndarray, direction: np.ndarray, p
 def _on_triangles(points: np.ndarray, corners: np.ndarray, tolerance: float) -> np.ndarray:
     """(M,) bool: whether each of ``points`` (M, 3) lies within ``tolerance`` of its triangle
     ``corners`` (M, 3, 3): off its plane by no more, and inside its outline widened by as much."""
-    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normal = cross3(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
     height = np.einsum("mi,mi->m", points - corners[:, 0], normal)
     edges = corners[:, [1, 2, 0]] - corners  # (M, 3, 3)
-    inward = np.cross(normal[:, None], edges)  # into the triangle, for its own winding
+    inward = cross3(normal[:, None], edges)  # into the triangle, for its own winding
     inward /= np.maximum(np.linalg.norm(inward, axis=-1, keepdims=True), 1e-300)
     within = (np.einsum("mji,mji->mj", points[:, None] - corners, inward) >= -tolerance).all(axis=1)
     return (np.abs(height) <= tolerance) & within
@@ -225,6 +227,6 @@ def _on_triangles(points: np.ndarray, corners: np.ndarray, tolerance: float) -> 
 
 def _across(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors (3,) across ``direction`` (3,) and across each other."""
-    u = np.cross(direction, [0.0, 0.0, 1.0])
+    u = cross3(direction, [0.0, 0.0, 1.0])
     u /= np.linalg.norm(u)
-    return u, np.cross(direction, u)
+    return u, cross3(direction, u)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hemirad.core.fastops import cross3
 from hemirad.geometry.conforming import triangulate
 from hemirad.geometry.footprints import PlaneFrame, contacts, inner_lines, planar_frame, surface_region
 
@@ -94,7 +95,7 @@ def _remesh(surface: SurfaceGeometry, frame: PlaneFrame, found, tolerance: float
 
 
 def _unit_normals(corners: np.ndarray) -> np.ndarray:
-    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    cross = cross3(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     return cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)
 
 

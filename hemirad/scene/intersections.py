@@ -28,6 +28,7 @@ import numpy as np
 import shapely
 from scipy.spatial import cKDTree
 
+from hemirad.core.fastops import cross3
 from hemirad.geometry.conforming import MIN_ANGLE, min_angles, triangulate
 from hemirad.geometry.crossings import crossing_segments
 from hemirad.geometry.footprints import PlaneFrame, inner_lines, planar_frame, surface_region
@@ -93,7 +94,7 @@ def _cut_in_place(surface: SurfaceGeometry, corners: np.ndarray, cutting: np.nda
     ``cutting`` (K, 3, 3) crosses triangulated in its own plane along the cuts, the parts
     inside the solids ``around`` dropped; None when that changes nothing."""
     pairs = _box_pairs(corners, cutting, tolerance)
-    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals = cross3(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     rows, segments = crossing_segments(corners[pairs[:, 0], 0], normals[pairs[:, 0]], cutting[pairs[:, 1]],
                                        tolerance, planes=pairs[:, 0])
@@ -150,7 +151,7 @@ def _without_inside_or_needles(vertices: np.ndarray, triangles: np.ndarray, arou
     corners = vertices[triangles]
     edges = corners - np.roll(corners, 1, axis=1)
     longest = np.linalg.norm(edges, axis=2).max(axis=1)
-    needle = np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1) <= tolerance * longest  # 2 A / side
+    needle = np.linalg.norm(cross3(edges[:, 0], edges[:, 1]), axis=1) <= tolerance * longest  # 2 A / side
     inside = np.zeros(len(triangles), dtype=bool)
     if len(triangles):
         centroids = corners.mean(axis=1)
