@@ -1,4 +1,6 @@
 """The hemicube renderer: per-face frustum culling changes no pixel."""
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -10,7 +12,9 @@ from hemirad.transport.hemicube import FACES, face_visibility
 from hemirad.assembly import make_solver
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport import solver as solver_module
+from hemirad.core.errors import HemiradWarning
 from hemirad.transport.solver import ProgressiveSolver
+from hemirad.transport.sweep import group_light
 
 from patches import refined_solve
 
@@ -82,9 +86,11 @@ def test_a_prefetched_hemicube_is_the_one_rendered_when_asked_for():
         direct.close()
 
 
-def _solve_office_in_sweeps() -> ProgressiveSolver:
+def _solve_office_in_sweeps(cache_mb: float | None = None) -> ProgressiveSolver:
     scene = hemirad.load_scene("office")
     scene.solver.resolution, scene.solver.unshot_fraction = 64, 1e-2
+    if cache_mb is not None:
+        scene.solver.cache_mb = cache_mb
     solver = make_solver(scene)
     try:
         solver.run(scene.solver.max_shots, scene.solver.unshot_fraction)
@@ -115,6 +121,23 @@ def test_a_sweep_gives_the_same_numbers_however_far_its_worker_lags(monkeypatch)
     in_step = _solve_office_in_sweeps()
     assert torch.equal(behind.state.radiosity, in_step.state.radiosity)
     assert torch.equal(behind.state.unshot, in_step.state.unshot)
+
+
+def test_a_sweep_outgrowing_its_memory_gives_the_same_numbers_however_slow_its_worker(monkeypatch):
+    # the sweep falls back to one patch at a time where the light kept outgrows cache_mb (8 MB:
+    # midway through the reflectors' first sweep, of 20 groups), which it must find at the
+    # same point whether or not the worker kept up
+    with pytest.warns(HemiradWarning, match="outgrew solver.cache_mb"):
+        quick = _solve_office_in_sweeps(cache_mb=8.0)
+
+    def slow_group_light(*args):
+        time.sleep(0.05)
+        return group_light(*args)
+    monkeypatch.setattr(solver_module, "group_light", slow_group_light)
+    with pytest.warns(HemiradWarning, match="outgrew solver.cache_mb"):
+        slow = _solve_office_in_sweeps(cache_mb=8.0)
+    assert torch.equal(quick.state.radiosity, slow.state.radiosity)
+    assert quick.hemicubes_rendered == slow.hemicubes_rendered
 
 
 def _local(points):

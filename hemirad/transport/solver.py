@@ -44,6 +44,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 24: a sweep that outgrows ``solver.cache_mb`` goes one patch at a time up to
+#: ``GROUPS_AHEAD`` groups later (its worker's groups are taken in later);
 #: 23: a footprint's rim shoots by its straight stretches (alone at its corners), and a
 #: curved cap another object reaches into is made from smaller cubes, not its elements;
 #: 22: near-field pairs half a source side apart or more take one Gauss rule over each
@@ -65,7 +67,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 23
+ARITHMETIC = 24
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
@@ -77,8 +79,10 @@ NEAR_BATCH = 32
 #: (``ProgressiveSolver._make_group``), which runs at the lowest priority (``_yield_to_drawing``):
 #: the light is needed at the sweep's end, the drawing thread and Mesa's two threads are the
 #: sweep's critical path, and the worker takes what cores they leave. Measured on the
-#: furnished room (2 cores, interleaved): 9.3-9.7 s against 9.5-10.9 s with one group ahead at
-#: the same priority; either alone gains nothing. About 100 MB more views at the peak.
+#: furnished room (2 cores, with Mesa's driver thread, interleaved): 9.4-10.1 s (mean 9.58 s
+#: over six runs) against 9.5-10.8 s (mean 9.98 s) with one group ahead at the drawing
+#: thread's priority, and 9.8-9.9 s with one group ahead at the lowest. About 100 MB more
+#: views at the peak.
 GROUPS_AHEAD = 8
 
 
@@ -502,8 +506,6 @@ class ProgressiveSolver:
             if i + 1 < len(order):  # drawn while this patch's hemicube is decoded and used
                 self._prefetch(order[i + 1])
             nodes = patches.cut(patch, self.render_and_keep, self.mesh.corners)
-            while making and making[0][1].done():
-                self._join_group(making.popleft())
             # rows not kept are made with the group's (``_make_group``); the nodes of a split
             # patch that its cut did not draw are drawn here, each while the one before is used
             drawn = [node for node in nodes if node not in self.rows and node not in self._views]
@@ -524,6 +526,8 @@ class ProgressiveSolver:
             transport.groups.add(patch // NEAR_BATCH)
             making.append((new, self._make_group(new)))
             new = {}
+            # taken in at fixed points (never when the worker happens to be done), so that the
+            # light kept, which the memory check below reads, is the same in every run
             while len(making) > (GROUPS_AHEAD if i + 1 < len(order) else 0):
                 self._join_group(making.popleft())
             if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
