@@ -124,18 +124,29 @@ def test_a_sweep_gives_the_same_numbers_however_far_its_worker_lags(monkeypatch)
 
 
 def test_a_sweep_outgrowing_its_memory_gives_the_same_numbers_however_slow_its_worker(monkeypatch):
-    # the sweep falls back to one patch at a time where the light kept outgrows cache_mb (8 MB:
-    # midway through the reflectors' first sweep, of 20 groups), which it must find at the
-    # same point whether or not the worker kept up
+    # the sweep goes one patch at a time where the light kept outgrows cache_mb (3 MB: partway
+    # through the reflectors' first sweep), which it must find at the same patch whether or
+    # not the worker kept up (read from the light as the worker happened to leave it, the
+    # quick run stopped after 325 hemicubes and the slow one after 425)
+    stopped_at = []  # hemicubes drawn when the sweep gave way to single patches
+    shoot_patch = ProgressiveSolver._shoot_patch
+
+    def recording_shoot_patch(self):
+        if not stopped_at or stopped_at[-1] is None:
+            stopped_at.append(self.hemicubes_rendered)
+        return shoot_patch(self)
+    monkeypatch.setattr(ProgressiveSolver, "_shoot_patch", recording_shoot_patch)
     with pytest.warns(HemiradWarning, match="outgrew solver.cache_mb"):
-        quick = _solve_office_in_sweeps(cache_mb=8.0)
+        quick = _solve_office_in_sweeps(cache_mb=3.0)
+    stopped_at.append(None)
 
     def slow_group_light(*args):
         time.sleep(0.05)
         return group_light(*args)
     monkeypatch.setattr(solver_module, "group_light", slow_group_light)
     with pytest.warns(HemiradWarning, match="outgrew solver.cache_mb"):
-        slow = _solve_office_in_sweeps(cache_mb=8.0)
+        slow = _solve_office_in_sweeps(cache_mb=3.0)
+    assert stopped_at[0] == stopped_at[2] > 0
     assert torch.equal(quick.state.radiosity, slow.state.radiosity)
     assert quick.hemicubes_rendered == slow.hemicubes_rendered
 

@@ -502,10 +502,20 @@ class ProgressiveSolver:
         order = [patch for g in groups for patch in range(g * NEAR_BATCH, min((g + 1) * NEAR_BATCH, tree.num_patches))]
         new: dict[int, tuple[torch.Tensor, HemicubeView | None]] = {}  # the group's nodes: (F, view)
         making = collections.deque()  # the groups before: (its nodes, what the worker makes of them)
+        taken: list[int] = []  # the bytes each group taken in added to the kept light, in group order
+        kept_before = transport.nbytes
+
+        def take_in() -> None:
+            before = transport.nbytes
+            self._join_group(making.popleft())
+            taken.append(transport.nbytes - before)
+
         for i, patch in enumerate(order):
             if i + 1 < len(order):  # drawn while this patch's hemicube is decoded and used
                 self._prefetch(order[i + 1])
             nodes = patches.cut(patch, self.render_and_keep, self.mesh.corners)
+            while making and making[0][1].done():
+                take_in()
             # rows not kept are made with the group's (``_make_group``); the nodes of a split
             # patch that its cut did not draw are drawn here, each while the one before is used
             drawn = [node for node in nodes if node not in self.rows and node not in self._views]
@@ -526,11 +536,15 @@ class ProgressiveSolver:
             transport.groups.add(patch // NEAR_BATCH)
             making.append((new, self._make_group(new)))
             new = {}
-            # taken in at fixed points (never when the worker happens to be done), so that the
-            # light kept, which the memory check below reads, is the same in every run
-            while len(making) > (GROUPS_AHEAD if i + 1 < len(order) else 0):
-                self._join_group(making.popleft())
-            if transport.nbytes > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
+            ahead = GROUPS_AHEAD if i + 1 < len(order) else 0
+            while len(making) > ahead:
+                take_in()
+            # the memory check reads the light of the groups taken in by now in every run: the
+            # worker may be further along in this one, which must not move the point it stops at
+            settled = kept_before + sum(taken[:max(0, len(taken) + len(making) - ahead)])
+            if settled > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
+                while making:  # every group sent is taken in (its rows and near fields kept), as in every run
+                    take_in()
                 warnings.warn(f"the light kept for sweeps outgrew solver.cache_mb ({self.rows.budget_bytes >> 20} MB) "
                               f"at {self.mesh.num_elements} elements: from here patches shoot one at a time, drawing "
                               f"again each hemicube whose row was dropped, which can take many times longer; a "
