@@ -10,9 +10,9 @@ from hemirad.geometry.split import split_triangles
 from hemirad.scene.meshing import build_mesh
 from hemirad.transport.hemicube import FACES, face_visibility
 from hemirad.assembly import make_solver
+from hemirad.core.errors import HemiradWarning
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport import solver as solver_module
-from hemirad.core.errors import HemiradWarning
 from hemirad.transport.solver import ProgressiveSolver
 from hemirad.transport.sweep import group_light
 
@@ -128,25 +128,24 @@ def test_a_sweep_outgrowing_its_memory_gives_the_same_numbers_however_slow_its_w
     # through the reflectors' first sweep), which it must find at the same patch whether or
     # not the worker kept up (read from the light as the worker happened to leave it, the
     # quick run stopped after 325 hemicubes and the slow one after 425)
-    stopped_at = []  # hemicubes drawn when the sweep gave way to single patches
     shoot_patch = ProgressiveSolver._shoot_patch
 
-    def recording_shoot_patch(self):
-        if not stopped_at or stopped_at[-1] is None:
-            stopped_at.append(self.hemicubes_rendered)
-        return shoot_patch(self)
-    monkeypatch.setattr(ProgressiveSolver, "_shoot_patch", recording_shoot_patch)
-    with pytest.warns(HemiradWarning, match="outgrew solver.cache_mb"):
-        quick = _solve_office_in_sweeps(cache_mb=3.0)
-    stopped_at.append(None)
+    def solve_and_stopping_point():
+        """The solve, and the hemicubes drawn when its sweep gave way to single patches."""
+        drawn = []
+        monkeypatch.setattr(ProgressiveSolver, "_shoot_patch",
+                            lambda self: drawn.append(self.hemicubes_rendered) or shoot_patch(self))
+        with pytest.warns(HemiradWarning, match="outgrew solver.cache_mb"):
+            solver = _solve_office_in_sweeps(cache_mb=3.0)
+        return solver, drawn[0]
+    quick, quick_stop = solve_and_stopping_point()
 
     def slow_group_light(*args):
         time.sleep(0.05)
         return group_light(*args)
     monkeypatch.setattr(solver_module, "group_light", slow_group_light)
-    with pytest.warns(HemiradWarning, match="outgrew solver.cache_mb"):
-        slow = _solve_office_in_sweeps(cache_mb=3.0)
-    assert stopped_at[0] == stopped_at[2] > 0
+    slow, slow_stop = solve_and_stopping_point()
+    assert quick_stop == slow_stop > 0
     assert torch.equal(quick.state.radiosity, slow.state.radiosity)
     assert quick.hemicubes_rendered == slow.hemicubes_rendered
 

@@ -539,9 +539,11 @@ class ProgressiveSolver:
             ahead = GROUPS_AHEAD if i + 1 < len(order) else 0
             while len(making) > ahead:
                 take_in()
-            # the memory check reads the light of the groups taken in by now in every run: the
-            # worker may be further along in this one, which must not move the point it stops at
-            settled = kept_before + sum(taken[:max(0, len(taken) + len(making) - ahead)])
+            # every run has taken in all but the last ``ahead`` groups sent (this one may have taken
+            # in more, its worker being quicker): the memory check reads only those, so the point
+            # where it stops does not depend on the worker's speed
+            sent = len(taken) + len(making)
+            settled = kept_before + sum(taken[:max(0, sent - ahead)])
             if settled > self.rows.budget_bytes:  # over the memory asked for: one patch at a time
                 while making:  # every group sent is taken in (its rows and near fields kept), as in every run
                     take_in()
