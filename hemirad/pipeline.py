@@ -39,9 +39,10 @@ from hemirad.lighting import photometry, survey
 from hemirad.lighting.grids import MAX_GRID_POINTS, grid_counts, grid_spacing
 from hemirad.lighting.sensors import SENSOR_RESOLUTION, irradiance_at
 from hemirad.output import display, export, falsecolour, gltf
-from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.output.meshview import pick_surface, surface_view
+from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.output.render import render_view
+from hemirad.output.shading import Shading, picture_shading
 from hemirad.scene.meshing import build_mesh
 from hemirad.scene.model import ANSWER, Camera, Scene
 from hemirad.transport.gl import GLContext, check_image_size
@@ -169,13 +170,20 @@ class Result:
         emitting = (self.emission > 0).any(dim=1)
         return display.auto_exposure(self.display_radiosity, self.mesh.areas, emitting)
 
-    def linear_image(self, vertex_radiosity: torch.Tensor | None = None) -> np.ndarray:
+    def shading(self, vertex_radiosity: torch.Tensor | None = None) -> Shading:
+        """The display radiosity as pictures draw it (``output.shading``): each element cut
+        into a lattice shaded from the fitted quadratics around its corners, or, with
+        ``solver.reconstruction: mean`` (the paper's), the vertex values Gouraud-shaded.
+        ``vertex_radiosity``: ``vertex_radiosity()``, to reuse one already computed."""
+        return picture_shading(self.mesh, self.display_radiosity, self.scene.solver.reconstruction, vertex_radiosity)
+
+    def linear_image(self, shading: Shading | None = None) -> np.ndarray:
         """(height, width, 3) float32 camera view of the display radiosity: linear, in the
-        scene's units (W/m^2), before exposure and sRGB. ``vertex_radiosity``:
-        ``vertex_radiosity()``, to reuse one already computed."""
-        vertex = self.vertex_radiosity() if vertex_radiosity is None else vertex_radiosity
-        return render_view(self.mesh, vertex, self.scene.camera,
-                           triangles=display.conforming_triangles(self.mesh))
+        scene's units (W/m^2), before exposure and sRGB. ``shading``: ``shading()``, to reuse
+        one already made."""
+        shading = self.shading() if shading is None else shading
+        return render_view(self.mesh, shading.values, self.scene.camera, triangles=shading.triangles,
+                           positions=shading.positions)
 
     def image(self, linear: np.ndarray | None = None) -> np.ndarray:
         """(height, width, 3) uint8 sRGB camera view. ``linear``: ``linear_image()``, to
@@ -271,7 +279,7 @@ class Result:
         vertex = self.vertex_radiosity()
         check_finite(self, vertex)  # before anything is written
         start = time.perf_counter()
-        linear = self.linear_image(vertex)
+        linear = self.linear_image(self.shading(vertex))
         export.write_png(paths["image"], self.image(linear))
         export.write_exr(paths["HDR image"], self.radiance_image(linear))
         export.write_png(paths["luminance"], self.luminance_image(linear=linear))

@@ -170,7 +170,7 @@ class Comparison:
         return cls(ref, metrics.surface_mask(geometry, emitter))
 
     def scores(self, result: Result) -> dict[str, float]:
-        image = reference.radiance_view(result.mesh, result.vertex_radiosity(), self.reference.camera)
+        image = reference.radiance_view(result.mesh, result.shading(), self.reference.camera)
         return metrics.compare(self.reference.radiance, image, self.mask)
 
 

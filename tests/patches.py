@@ -81,3 +81,28 @@ def assert_same_mesh(a, b):
     for field in ("vertices", "triangles", "surface", "material"):
         assert torch.equal(getattr(a, field), getattr(b, field)), field
     assert a.surface_names == b.surface_names
+
+
+def jittered_square(cells: int = 10, jitter: float = 0.3, seed: int = 0) -> Mesh:
+    """The unit square in y = 0 (facing up), ``cells`` x ``cells`` squares each cut in two,
+    its inner vertices moved at random by up to ``jitter`` of a cell: an irregular mesh."""
+    n = cells + 1
+    x, z = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    inner = (x > 0) & (x < 1) & (z > 0) & (z < 1)
+    rng = np.random.default_rng(seed)
+    x = x + inner * rng.uniform(-jitter, jitter, x.shape) / cells
+    z = z + inner * rng.uniform(-jitter, jitter, z.shape) / cells
+    vertices = np.stack([x.ravel(), np.zeros(n * n), z.ravel()], 1)
+    i, j = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
+    a, b, c, d = (i * n + j).ravel(), ((i + 1) * n + j).ravel(), ((i + 1) * n + j + 1).ravel(), (i * n + j + 1).ravel()
+    triangles = np.concatenate([np.stack([a, d, c], 1), np.stack([a, c, b], 1)])  # counter-clockwise from +y
+    T = len(triangles)
+    return Mesh(vertices, triangles, np.zeros(T, dtype=np.int64), np.zeros(T, dtype=np.int64))
+
+
+def element_means(mesh: Mesh, f) -> torch.Tensor:
+    """(T,) each element's exact mean of ``f`` (a quadratic of x, z): the mean of its values
+    at the edges' midpoints, a rule exact for quadratics."""
+    corners = mesh.corners
+    mids = (corners + corners.roll(1, dims=1)) / 2  # (T, 3, 3)
+    return f(mids[..., 0], mids[..., 2]).mean(1)

@@ -104,7 +104,7 @@ class Case:
     mask: np.ndarray  # (H, W) bool surface pixels
 
     def view(self, result) -> np.ndarray:
-        return reference.radiance_view(result.mesh, result.vertex_radiosity(), self.reference.camera)
+        return reference.radiance_view(result.mesh, result.shading(), self.reference.camera)
 
     def scores(self, image: np.ndarray) -> dict[str, float]:
         return metrics.compare(self.reference.radiance, image, self.mask)
@@ -212,9 +212,10 @@ def test_radiance_view_of_a_closed_box_is_b_over_pi():
     finally:
         solver.close()
     from hemirad.output import display
+    from hemirad.output.shading import gouraud_shading
     vertex = display.vertex_values(mesh, state.radiosity)
     camera = Camera(position=(0.5, 0.5, 0.9), look_at=(0.5, 0.5, 0.0), fov=60, width=16, height=12)
-    view = reference.radiance_view(mesh, vertex, camera)
+    view = reference.radiance_view(mesh, gouraud_shading(mesh, vertex), camera)
     np.testing.assert_allclose(view, emission / (1 - rho) / math.pi, rtol=0.01)
 
 

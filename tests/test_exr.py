@@ -69,8 +69,8 @@ def test_written_exr_is_the_linear_view_over_pi(solved):
     back, types = read_exr(paths["HDR image"])
     assert set(types.values()) == {OpenEXR.FLOAT}
     camera = result.scene.camera
-    linear = render_view(result.mesh, result.vertex_radiosity(), camera,
-                         triangles=display.conforming_triangles(result.mesh))
+    shading = result.shading()
+    linear = render_view(result.mesh, shading.values, camera, triangles=shading.triangles, positions=shading.positions)
     assert back.shape == (camera.height, camera.width, 3)
     assert np.allclose(back, linear / math.pi, rtol=1e-6, atol=0)
     # the lamp reflects nothing: where the camera sees it whole, its radiance is E / pi exactly

@@ -30,7 +30,7 @@ objects:
      corners: [[-1, 0, -1], [-1, 0, 1], [1, 0, 1], [1, 0, -1]]}}
 {extra}
 camera: {{position: [0, 2, -2], look_at: [0, 0, 0], width: 64, height: 48, supersample: 1}}
-solver: {{resolution: 64, unshot_fraction: 1.0e-6, error_samples: {samples}}}
+solver: {{resolution: 128, unshot_fraction: 1.0e-6, error_samples: {samples}}}
 """
     return parse_scene(yaml.safe_load(text))
 
@@ -43,8 +43,7 @@ def exact(points: torch.Tensor) -> torch.Tensor:
 
 def measured_error(result, points: torch.Tensor, element: torch.Tensor, barycentric: torch.Tensor) -> float:
     """The displayed floor's relative RMS error against the closed form at ``points``."""
-    vertex = result.vertex_radiosity()[:, 0]  # grey light
-    shown = (vertex[result.mesh.triangles.index_select(0, element)] * barycentric).sum(1)
+    shown = result.shading().at(result.mesh, element, barycentric)[:, 0]  # grey light
     truth = exact(points)
     return math.sqrt(float(((shown - truth) ** 2).sum() / (truth ** 2).sum()))
 
@@ -71,7 +70,8 @@ def test_the_estimate_reads_the_error_a_closed_form_measures(element_size):
 def test_a_finer_mesh_is_estimated_better_and_the_same_run_the_same():
     coarse, fine = (hemirad.solve(lamp_over_floor(size, 300)) for size in (0.5, 0.125))
     assert fine.stats["estimated_error"] < 0.5 * coarse.stats["estimated_error"]
-    again = gathered_error(fine.mesh, fine.display_radiosity, fine.emission, fine.reflectance, 300, 64)
+    again = gathered_error(fine.mesh, fine.display_radiosity, fine.emission, fine.reflectance, 300,
+                           fine.scene.solver.resolution)
     assert again.relative_rms == fine.stats["estimated_error"]
 
 

@@ -2,8 +2,8 @@
 surfaces, the displayed radiosity against a final gather of the solved radiosity
 (docs/DESIGN.md §3.8).
 
-What a user is shown at a point x of element k is the Gouraud interpolation of vertex
-values (``output.display``). What the solution says x receives is a final gather: a
+What a user is shown at a point x of element k is the picture's shading there
+(``output.shading``: the fitted quadratics around the element's corners, blended). What the solution says x receives is a final gather: a
 hemicube at x, every pixel's delta form factor times the radiosity of the element it sees,
 so B(x) = E_k + rho_k sum_j F_xj B_j (``lighting.sensors``). The gather resolves what the
 mesh cannot: a shadow edge or a penumbra inside an element, light falling off over a large
@@ -33,8 +33,8 @@ import torch
 from hemirad.core.colour import luminance
 from hemirad.geometry.mesh import Mesh, barycentric
 from hemirad.lighting.sensors import final_gather
-from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.output.render import render_view
+from hemirad.output.shading import picture_shading
 from hemirad.scene.model import Camera
 
 #: The share of a sample's (cosine-weighted) hemisphere in which it sees back faces above
@@ -108,8 +108,8 @@ def gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, 
         emission, reflectance: (T, 3) each element's.
         resolution: the gathers' hemicube resolution.
         seed: of the sampling: the same mesh and seed give the same points.
-        reconstruction: how the display carries element values to its vertices
-            (``output.reconstruction``): the estimate is of what is shown.
+        reconstruction: how the display carries element values over the surfaces
+            (``output.shading.picture_shading``): the estimate is of what is shown.
     """
     mesh = mesh.to("cpu")
     emission = torch.as_tensor(emission, dtype=torch.float64).cpu()
@@ -186,8 +186,7 @@ def _compare(mesh: Mesh, radiosity, emission: torch.Tensor, reflectance, element
     """The estimate from N sampled points: (N,) their elements, (N, 3) their barycentric
     ``coordinates`` there and (N, 3) the points."""
     radiosity, reflectance = (torch.as_tensor(t, dtype=torch.float64).cpu() for t in (radiosity, reflectance))
-    vertex = reconstructed_vertex_values(mesh, radiosity, reconstruction)  # (V, 3)
-    shown = luminance((vertex[mesh.triangles.index_select(0, element)] * coordinates[:, :, None]).sum(1))
+    shown = luminance(picture_shading(mesh, radiosity, reconstruction).at(mesh, element, coordinates))
     normals = mesh.normals.index_select(0, element)
     gather = final_gather(mesh, radiosity, points.numpy(), normals.numpy(), resolution)
     gathered = luminance(emission.index_select(0, element) + reflectance.index_select(0, element) * gather.irradiance)

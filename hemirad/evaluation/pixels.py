@@ -41,11 +41,11 @@ def unoccluded(point: np.ndarray, eye: np.ndarray, corners: np.ndarray) -> bool:
 
 
 def errors_at_points(result, points: np.ndarray, surface: int, reference: Reference) -> np.ndarray:
-    """Relative errors of ``result``'s view (its vertex radiosity, as displayed) against
+    """Relative errors of ``result``'s view (as its picture shades it) against
     ``reference`` at the pixels of ``points`` (N, 3) on the mesh's ``surface`` that the
     camera sees and that show only that surface; (M,) for the M <= N points kept."""
     camera, mesh = reference.camera, result.mesh
-    view = radiance_view(mesh, result.vertex_radiosity(), camera)
+    view = radiance_view(mesh, result.shading(), camera)
     _, share = coverage(mesh, mesh.surface == surface, camera)
     height, width = reference.radiance.shape[:2]
     corners, eye = mesh.corners.numpy(), np.asarray(camera.position, dtype=np.float64)

@@ -12,12 +12,12 @@ L = B / pi in every direction, so:
 
 * an emitter of emission E (exitance) is given to Mitsuba as radiance E / pi;
 * a solution is compared as ``radiance_view``: its display radiosity (B plus the ambient
-  term), averaged to vertices, Gouraud-shaded by ``render.render_view`` with no exposure
-  and no sRGB, then divided by pi;
+  term) as its picture shades it (``Result.shading``), drawn by ``render.render_view`` with
+  no exposure and no sRGB, then divided by pi;
 * both are linear RGB in the scene's units; neither depends on the unit of length.
 
 What differs by construction is only the discretisation under test: constant radiosity per
-element, vertex averaging and Gouraud interpolation, the hemicube's point-sampled form
+element, its reconstruction over the surfaces (vertex fits and shading), the hemicube's point-sampled form
 factors and the unshot energy. Both images box-filter each pixel (Mitsuba with a box
 reconstruction filter, hemirad by supersampling), and compared views are supersampled 8x so
 that edge aliasing stays well below the errors measured.
@@ -41,6 +41,7 @@ from hemirad.geometry.mesh import Mesh
 from hemirad.lighting.photometry import emission_table
 from hemirad.output import display
 from hemirad.output.render import render_view
+from hemirad.output.shading import Shading
 from hemirad.scene.meshing import build_mesh
 from hemirad.scene.model import Camera, Scene
 
@@ -70,20 +71,20 @@ def reference_camera(camera: Camera, height: int = REFERENCE_HEIGHT) -> Camera:
     return dataclasses.replace(camera, width=width, height=height, supersample=COMPARE_SUPERSAMPLE)
 
 
-def radiance_view(mesh: Mesh, vertex_radiosity: torch.Tensor, camera: Camera) -> np.ndarray:
+def radiance_view(mesh: Mesh, shading: Shading, camera: Camera) -> np.ndarray:
     """A solution as the reference sees it: linear radiance per pixel.
 
     Args:
         mesh: the solved mesh (T-vertices allowed).
-        vertex_radiosity: (V, 3) display radiosity per vertex, e.g. ``Result.vertex_radiosity()``
-            (element values averaged to vertices, T-vertices made conforming).
+        shading: its display radiosity as drawn, e.g. ``Result.shading()`` (or
+            ``shading.gouraud_shading(mesh, vertex_radiosity)``).
         camera: the view, normally ``reference_camera(scene.camera)``.
 
     Returns:
-        (H, W, 3) float32 radiance L = B / pi, no exposure and no tone mapping, drawn with
-        ``display.conforming_triangles`` exactly as ``Result.image`` draws it.
+        (H, W, 3) float32 radiance L = B / pi, no exposure and no tone mapping, drawn exactly
+        as ``Result.image`` draws it.
     """
-    radiosity = render_view(mesh, vertex_radiosity, camera, triangles=display.conforming_triangles(mesh))
+    radiosity = render_view(mesh, shading.values, camera, triangles=shading.triangles, positions=shading.positions)
     return (radiosity / math.pi).astype(np.float32)
 
 

@@ -26,6 +26,7 @@ release before) 0.56-0.72x on the finest uniform meshes (10,000-11,000 elements)
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 
 import torch
 
@@ -78,6 +79,71 @@ def _tangent_frames(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
     return u, torch.linalg.cross(normal, u)
 
 
+@dataclass(frozen=True)
+class _FitProblem:
+    """The least-squares problem of every vertex's fit, which depends on the mesh alone: the
+    (vertex, element) pairs within two rings, sorted by vertex, each pair's basis (the
+    element's means of 1, x, y, x^2, xy, y^2 in its vertex's tangent frame, in units of the
+    vertex's element size) and weight."""
+
+    vertex: torch.Tensor  # (Q,)
+    element: torch.Tensor  # (Q,)
+    basis: torch.Tensor  # (Q, 6)
+    weight: torch.Tensor  # (Q,)
+    u: torch.Tensor  # (V, 3) the tangent frames
+    w: torch.Tensor  # (V, 3)
+    size: torch.Tensor  # (V,) each vertex's element size
+
+
+def _fit_problem(mesh: Mesh) -> _FitProblem:
+    device = mesh.vertices.device
+    V = len(mesh.vertices)
+    vertex, element = vertex_element_pairs(mesh)
+    u, w = _tangent_frames(mesh)
+    corner_vertex = mesh.triangles.reshape(-1)
+    ring_area = torch.zeros(V, dtype=torch.float64, device=device).index_add_(0, corner_vertex, mesh.areas.repeat_interleave(3))
+    ring_count = torch.zeros(V, dtype=torch.float64, device=device).index_add_(
+        0, corner_vertex, torch.ones(3 * mesh.num_elements, dtype=torch.float64, device=device))
+    size = (ring_area / ring_count.clamp(min=1)).sqrt().clamp(min=1e-300)  # (V,) the vertex's element size
+
+    # the pairs' coordinates in their vertex's tangent plane, in units of its element size
+    scale = size.index_select(0, vertex)[:, None]
+    uq, wq = u.index_select(0, vertex), w.index_select(0, vertex)
+    offset = mesh.centroids.index_select(0, element) - mesh.vertices.index_select(0, vertex)  # (Q, 3)
+    x, y = (offset * uq).sum(1) / scale[:, 0], (offset * wq).sum(1) / scale[:, 0]
+    # an element's mean of x^2 is its centroid's x^2 plus (1/12) sum over its corners of
+    # (corner - centroid)_x^2 (a triangle's second moment), and alike for xy and y^2
+    spread = mesh.corners.index_select(0, element) - mesh.centroids.index_select(0, element)[:, None, :]  # (Q, 3, 3)
+    sx, sy = (spread * uq[:, None, :]).sum(-1) / scale, (spread * wq[:, None, :]).sum(-1) / scale
+    basis = torch.stack([torch.ones_like(x), x, y, x * x + (sx * sx).sum(1) / 12,
+                         x * y + (sx * sy).sum(1) / 12, y * y + (sy * sy).sum(1) / 12], 1)  # (Q, 6)
+    weight = (mesh.areas.index_select(0, element) / (scale[:, 0] * scale[:, 0])
+              * torch.exp(-(x * x + y * y) / (2 * FIT_WIDTH * FIT_WIDTH)))  # (Q,)
+    return _FitProblem(vertex, element, basis, weight, u, w, size)
+
+
+def _normal_matrices(problem: _FitProblem, terms: int, V: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(V, terms, terms) each vertex's normal matrix X^T W X, with the identity where it is
+    too ill conditioned to solve, and (V,) bool: where it was not."""
+    X = problem.basis[:, :terms]
+    normal_matrix = torch.zeros(V, terms, terms, dtype=torch.float64, device=X.device).index_add_(
+        0, problem.vertex, problem.weight[:, None, None] * X[:, :, None] * X[:, None, :])
+    singular = torch.linalg.svdvals(normal_matrix)  # (V, terms), descending
+    posed = (singular[:, -1] * MAX_CONDITION > singular[:, 0]) & (singular[:, 0] > 0)
+    safe = torch.where(posed[:, None, None], normal_matrix, torch.eye(terms, dtype=torch.float64, device=X.device))
+    return safe, posed
+
+
+def _fitted_range(problem: _FitProblem, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(V, C), (V, C): the least and greatest of the element values each vertex's fit saw."""
+    V, C = len(problem.size), values.shape[1]
+    index = problem.vertex[:, None].expand(-1, C)
+    near = values.index_select(0, problem.element)
+    low = torch.full((V, C), float("inf"), dtype=torch.float64, device=values.device).scatter_reduce(0, index, near, "amin")
+    high = torch.full((V, C), -float("inf"), dtype=torch.float64, device=values.device).scatter_reduce(0, index, near, "amax")
+    return low, high
+
+
 def quadratic_vertex_values(mesh: Mesh, element_values: torch.Tensor) -> torch.Tensor:
     """Each vertex's value of a weighted least-squares quadratic fitted to the element means
     within two rings of it, clamped into their range.
@@ -101,38 +167,15 @@ def quadratic_vertex_values(mesh: Mesh, element_values: torch.Tensor) -> torch.T
     mean = display.vertex_values(mesh, values)
     if mesh.num_elements == 0:
         return mean[:, 0] if squeeze else mean
-    vertex, element = vertex_element_pairs(mesh)
-    u, w = _tangent_frames(mesh)
-    corner_vertex = mesh.triangles.reshape(-1)
-    ring_area = torch.zeros(V, dtype=torch.float64, device=device).index_add_(0, corner_vertex, mesh.areas.repeat_interleave(3))
-    ring_count = torch.zeros(V, dtype=torch.float64, device=device).index_add_(
-        0, corner_vertex, torch.ones(3 * mesh.num_elements, dtype=torch.float64, device=device))
-    size = (ring_area / ring_count.clamp(min=1)).sqrt().clamp(min=1e-300)  # (V,) the vertex's element size
-
-    # the pairs' coordinates in their vertex's tangent plane, in units of its element size
-    scale = size.index_select(0, vertex)[:, None]
-    uq, wq = u.index_select(0, vertex), w.index_select(0, vertex)
-    offset = mesh.centroids.index_select(0, element) - mesh.vertices.index_select(0, vertex)  # (Q, 3)
-    x, y = (offset * uq).sum(1) / scale[:, 0], (offset * wq).sum(1) / scale[:, 0]
-    # an element's mean of x^2 is its centroid's x^2 plus (1/12) sum over its corners of
-    # (corner - centroid)_x^2 (a triangle's second moment), and alike for xy and y^2
-    spread = mesh.corners.index_select(0, element) - mesh.centroids.index_select(0, element)[:, None, :]  # (Q, 3, 3)
-    sx, sy = (spread * uq[:, None, :]).sum(-1) / scale, (spread * wq[:, None, :]).sum(-1) / scale
-    basis = torch.stack([torch.ones_like(x), x, y, x * x + (sx * sx).sum(1) / 12,
-                         x * y + (sx * sy).sum(1) / 12, y * y + (sy * sy).sum(1) / 12], 1)  # (Q, 6)
-    weight = (mesh.areas.index_select(0, element) / (scale[:, 0] * scale[:, 0])
-              * torch.exp(-(x * x + y * y) / (2 * FIT_WIDTH * FIT_WIDTH)))  # (Q,)
+    problem = _fit_problem(mesh)
+    vertex, element, basis, weight = problem.vertex, problem.element, problem.basis, problem.weight
 
     fits = []  # (posed (V,), value (V, C)) of the quadratic, then the linear fit
     for terms in (6, 3):
         X = basis[:, :terms]
-        normal_matrix = torch.zeros(V, terms, terms, dtype=torch.float64, device=device).index_add_(
-            0, vertex, weight[:, None, None] * X[:, :, None] * X[:, None, :])
-        singular = torch.linalg.svdvals(normal_matrix)  # (V, terms), descending
-        posed = (singular[:, -1] * MAX_CONDITION > singular[:, 0]) & (singular[:, 0] > 0)
+        safe, posed = _normal_matrices(problem, terms, V)
         # the fit's value at the vertex (x = y = 0) is its constant term: sum_q c_q v_q with
         # c_q = w_q X_q . (X^T W X)^-1 e_0, one solve per vertex for all channels
-        safe = torch.where(posed[:, None, None], normal_matrix, torch.eye(terms, dtype=torch.float64, device=device))
         first = torch.zeros(V, terms, 1, dtype=torch.float64, device=device)
         first[:, 0] = 1.0
         g = torch.linalg.solve(safe, first)[:, :, 0]  # (V, terms)
@@ -143,10 +186,7 @@ def quadratic_vertex_values(mesh: Mesh, element_values: torch.Tensor) -> torch.T
 
     # No new extremes: into the range of the values fitted to, widened to the linear fit's
     # value, which at a surface's border rightly extrapolates past every element's mean.
-    index = vertex[:, None].expand(-1, C)
-    near = values.index_select(0, element)
-    low = torch.full((V, C), float("inf"), dtype=torch.float64, device=device).scatter_reduce(0, index, near, "amin")
-    high = torch.full((V, C), -float("inf"), dtype=torch.float64, device=device).scatter_reduce(0, index, near, "amax")
+    low, high = _fitted_range(problem, values)
     # (never below zero, where the values are not: radiosity is not negative)
     widened_low = torch.maximum(torch.where(linear_posed[:, None], torch.minimum(low, linear), low), low.clamp(max=0))
     widened_high = torch.where(linear_posed[:, None], torch.maximum(high, linear), high)
@@ -155,6 +195,54 @@ def quadratic_vertex_values(mesh: Mesh, element_values: torch.Tensor) -> torch.T
     fitted = torch.where(quadratic_posed[:, None],
                          torch.minimum(torch.maximum(quadratic, widened_low), widened_high), fitted)
     return fitted[:, 0] if squeeze else fitted
+
+
+@dataclass(frozen=True)
+class VertexFits:
+    """The polynomial fitted around every vertex (``vertex_fits``), to be read near it."""
+
+    origin: torch.Tensor  # (V, 3) the vertices
+    u: torch.Tensor  # (V, 3), (V, 3) their tangent frames
+    w: torch.Tensor
+    size: torch.Tensor  # (V,) their element sizes, the unit of x and y
+    coefficients: torch.Tensor  # (V, 6, C) of 1, x, y, x^2, xy, y^2
+    low: torch.Tensor  # (V, C), (V, C): the range of the element values fitted to
+    high: torch.Tensor
+
+    def at(self, vertex: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """(..., C) the fits of ``vertex`` (...,) at ``points`` (..., 3)."""
+        offset = points - self.origin[vertex]
+        size = self.size[vertex]
+        x, y = (offset * self.u[vertex]).sum(-1) / size, (offset * self.w[vertex]).sum(-1) / size
+        basis = torch.stack([torch.ones_like(x), x, y, x * x, x * y, y * y], -1)  # (..., 6)
+        return (basis[..., :, None] * self.coefficients[vertex]).sum(-2)
+
+
+def vertex_fits(mesh: Mesh, element_values: torch.Tensor, fallback: torch.Tensor) -> VertexFits:
+    """The whole polynomial of every vertex's fit (``quadratic_vertex_values`` keeps only its
+    value at the vertex): the quadratic where it is well posed, else the linear fit, else the
+    constant ``fallback`` (V, C) (the vertex's shown value).
+
+    Args:
+        mesh: the mesh; element_values: (T, C) each element's mean value.
+        fallback: (V, C) the value of a vertex with neither fit.
+    """
+    device = mesh.vertices.device
+    values = torch.as_tensor(element_values).to(device=device, dtype=torch.float64)
+    V, C = len(mesh.vertices), values.shape[1]
+    problem = _fit_problem(mesh)
+    coefficients = torch.zeros(V, 6, C, dtype=torch.float64, device=device)
+    coefficients[:, 0] = fallback
+    for terms in (3, 6):  # the quadratic, where posed, over the linear fit
+        X = problem.basis[:, :terms]
+        safe, posed = _normal_matrices(problem, terms, V)
+        rhs = torch.zeros(V, terms, C, dtype=torch.float64, device=device).index_add_(
+            0, problem.vertex, (problem.weight[:, None] * X)[:, :, None] * values.index_select(0, problem.element)[:, None, :])
+        fit = torch.zeros_like(coefficients)
+        fit[:, :terms] = torch.linalg.solve(safe, rhs)
+        coefficients = torch.where(posed[:, None, None], fit, coefficients)
+    low, high = _fitted_range(problem, values)
+    return VertexFits(mesh.vertices.to(torch.float64), problem.u, problem.w, problem.size, coefficients, low, high)
 
 
 def reconstructed_vertex_values(mesh: Mesh, element_values: torch.Tensor, reconstruction: str = "quadratic") -> torch.Tensor:

@@ -142,7 +142,7 @@ def depth_range(mesh: Mesh, camera: Camera) -> tuple[float, float] | None:
     return min(near, far * 0.5), far
 
 
-def render_view(mesh: Mesh, vertex_colors, camera: Camera, triangles=None) -> np.ndarray:
+def render_view(mesh: Mesh, vertex_colors, camera: Camera, triangles=None, positions=None) -> np.ndarray:
     """Render the mesh with Gouraud-interpolated vertex colours from the camera.
 
     Depth-tested, both faces drawn, black background, box-filtered supersampling.
@@ -154,6 +154,8 @@ def render_view(mesh: Mesh, vertex_colors, camera: Camera, triangles=None) -> np
         triangles: (T'', 3) int64 indices into ``mesh.vertices`` to draw instead of
             ``mesh.triangles``, e.g. ``display.conforming_triangles(mesh)`` for a mesh with
             T-vertices; None draws the elements themselves.
+        positions: (N, 3) the points ``triangles`` and ``vertex_colors`` refer to instead of
+            ``mesh.vertices``, on the mesh's surfaces (a ``shading.Shading``'s).
 
     Returns:
         (height, width, 3) float32 linear values, first row at the top of the image.
@@ -162,8 +164,9 @@ def render_view(mesh: Mesh, vertex_colors, camera: Camera, triangles=None) -> np
     ss = max(1, int(camera.supersample))
     colors = vertex_colors.detach().cpu().numpy() if isinstance(vertex_colors, torch.Tensor) else np.asarray(vertex_colors)
     colors = np.ascontiguousarray(colors, dtype=np.float32).reshape(-1, 3)
-    if len(colors) != len(mesh.vertices):
-        raise ValueError(f"need one colour per vertex ({len(mesh.vertices)}), got {len(colors)}")
+    points = mesh.vertices if positions is None else torch.as_tensor(positions)
+    if len(colors) != len(points):
+        raise ValueError(f"need one colour per vertex ({len(points)}), got {len(colors)}")
     if width < 1 or height < 1:
         raise HemiradInputError(f"camera width and height must be positive, got {width} x {height}.")
 
@@ -184,7 +187,7 @@ def render_view(mesh: Mesh, vertex_colors, camera: Camera, triangles=None) -> np
     # Translate to the eye in float64 before the float32 upload: scene coordinates far from
     # the origin would otherwise lose precision in the GPU's model-view transform.
     eye = np.asarray(camera.position, dtype=np.float64)
-    positions = ((mesh.vertices.detach().cpu().numpy() - eye) @ basis.T).astype(np.float32)
+    eye_space = ((points.detach().cpu().numpy() - eye) @ basis.T).astype(np.float32)
     indices = draw.detach().cpu().numpy().astype(np.int32)
     projection = perspective(camera.fov, width / height, *clip)
 
@@ -193,7 +196,7 @@ def render_view(mesh: Mesh, vertex_colors, camera: Camera, triangles=None) -> np
     program["clip_from_eye"].write(projection.T.astype(np.float32).tobytes())
 
     big_w, big_h = width * ss, height * ss
-    raw = _draw(ctx, program, positions, colors, indices, big_w, big_h)
+    raw = _draw(ctx, program, eye_space, colors, indices, big_w, big_h)
     # glReadPixels returns the bottom row first; images are stored top row first.
     big = np.frombuffer(raw, dtype=np.float32).reshape(big_h, big_w, 4)[::-1, :, :3]
     return big.reshape(height, ss, width, ss, 3).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
