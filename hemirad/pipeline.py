@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from hemirad import checkpoint as checkpoints
-from hemirad.adaptive.answer import RoundReport, VertexValues, estimated_relative_error, refine_by_answer
+from hemirad.adaptive.answer import Display, RoundReport, estimated_relative_error, refine_by_answer
 from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver, refined_patches
 from hemirad.core.atomic import remove_stale_temporaries
@@ -570,7 +570,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
                  flux=photometry.flux_emissions(scene, mesh))
     gathered, seconds = estimate()  # the last round's, when refinement judged on the answer made one here
     interpolation = estimated_relative_error(final, result.radiosity, emission=result.emission,
-                                             vertex_values=_shown_vertex_values(scene))
+                                             display=_picture(scene))
     stats.update(_estimate_stats(gathered, interpolation))
     stats["seconds"]["estimate"] = seconds  # the final mesh's estimate (each round's counts in "solve")
     if options.picture_error_samples:
@@ -598,10 +598,10 @@ def _check_answer_refinement(scene: Scene) -> None:
                          "refined mesh by the initial mesh's patches; use solver.patch_size auto, or another criterion.")
 
 
-def _shown_vertex_values(scene: Scene) -> VertexValues:
-    """How ``scene``'s pictures carry element values to their vertices (``solver.reconstruction``),
-    for the answer's ranking to judge what is shown."""
-    return lambda mesh, values: reconstructed_vertex_values(mesh, values, scene.solver.reconstruction)
+def _picture(scene: Scene) -> Display:
+    """How ``scene``'s pictures draw element values (``solver.reconstruction``), for the
+    answer's ranking to judge what is shown."""
+    return lambda mesh, values: picture_shading(mesh, values, scene.solver.reconstruction)
 
 
 def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: "_CheckpointWriter | None",
@@ -613,7 +613,7 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
     returns the rounds and the refiner that split."""
     options, refine = scene.solver, scene.refine
     refiner = Refiner(dataclasses.replace(refine, criterion=ANSWER), solver.emission)
-    shown = _shown_vertex_values(scene)
+    shown = _picture(scene)
     reports: list[RoundReport] = []
     if run is not None:
         try:
@@ -629,7 +629,7 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
         gathered, _ = estimate()
         if gathered is None:
             return estimated_relative_error(solver.mesh, solver.state.radiosity, emission=solver.emission,
-                                            vertex_values=shown)
+                                            display=shown)
         return gathered.relative_rms
 
     shot_done = progress
@@ -640,7 +640,7 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
                      lambda: solver.run(options.max_shots, options.unshot_fraction, shot_done),
                      report=None if saver is None else (lambda _: saver.save()), reports=reports,
                      patches_for=lambda: refined_patches(scene, solver), estimate=stopping_estimate,
-                     vertex_values=shown)
+                     display=shown)
     return reports, refiner
 
 

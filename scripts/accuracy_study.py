@@ -41,7 +41,7 @@ from hemirad.adaptive.answer import estimated_relative_error, refine_by_answer
 from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver, refined_patches
 from hemirad.evaluation import metrics, reference
-from hemirad.output.reconstruction import reconstructed_vertex_values
+from hemirad.output.shading import picture_shading
 from hemirad.pipeline import Result
 from hemirad.scene.meshing import build_mesh
 from hemirad.scene.model import ANSWER
@@ -255,7 +255,7 @@ def _scored(name, label, value, scene, solver, seconds, comparison) -> dict:
             "estimate_seconds": estimate_seconds, "estimated_image_error": picture.relative_rms,
             "estimated_image_standard_error": picture.standard_error,
             "interpolation_error": estimated_relative_error(result.mesh, result.radiosity, emission=result.emission,
-                                                            vertex_values=reconstructed_vertex_values),
+                                                            display=picture_shading),
             **comparison.scores(result)}
 
 
@@ -338,7 +338,7 @@ def _answer_run(name, shipped, comparison, factor: float, rounds: int, budget: i
 
     try:
         refine_by_answer(solver, refiner, scene.refine.max_elements, tolerance, rounds, shoot_on,
-                         patches_for=lambda: refined_patches(scene, solver), vertex_values=reconstructed_vertex_values)
+                         patches_for=lambda: refined_patches(scene, solver), display=picture_shading)
     finally:
         solver.close()
     if not every_round:

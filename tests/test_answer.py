@@ -14,6 +14,7 @@ from hemirad.adaptive.answer import (adopt_and_regather, element_errors, estimat
                                      refine_by_answer, round_splits, split_by_error, tolerance_splits)
 from hemirad.output.display import vertex_values
 from hemirad.output.reconstruction import reconstructed_vertex_values
+from hemirad.output.shading import gouraud_shading, picture_shading
 from hemirad.adaptive.refine import Refiner
 from hemirad.cli import main
 from hemirad.geometry.patches import build_patches
@@ -21,7 +22,7 @@ from hemirad.scene.model import RefineOptions
 from hemirad.transport.shooters import PatchShooters
 from hemirad.transport.solver import ProgressiveSolver
 
-from patches import assert_power_balances, closed_box, quad, quads_mesh, random_materials
+from patches import assert_power_balances, closed_box, element_means, quad, quads_mesh, random_materials
 
 SMALL_ROOM = Path(__file__).parent / "data" / "small_room.yaml"
 
@@ -37,21 +38,48 @@ def field(mesh, f):
     return values[:, None].expand(-1, 3).contiguous()
 
 
+def averaged(mesh, values):
+    """The paper's display: the elements averaged to the vertices, Gouraud-shaded."""
+    return gouraud_shading(mesh, vertex_values(mesh, values))
+
+
+def fitted(mesh, values):
+    """The fitted vertex values, Gouraud-shaded."""
+    return gouraud_shading(mesh, reconstructed_vertex_values(mesh, values))
+
+
 def test_the_estimate_vanishes_for_a_constant_and_a_linear_field_and_finds_a_step_and_an_averaged_border():
     mesh = grid()
-    assert float(element_errors(mesh, field(mesh, lambda p: torch.tensor(2.0)), vertex_values).max()) < 1e-12
-    linear = element_errors(mesh, field(mesh, lambda p: 1.0 + 3.0 * p[0] + 2.0 * p[2]), reconstructed_vertex_values)
+    assert float(element_errors(mesh, field(mesh, lambda p: torch.tensor(2.0)), averaged).max()) < 1e-12
+    linear = element_errors(mesh, field(mesh, lambda p: 1.0 + 3.0 * p[0] + 2.0 * p[2]), fitted)
     inside = ((mesh.corners[:, :, [0, 2]] > 0.13) & (mesh.corners[:, :, [0, 2]] < 0.87)).all(dim=(1, 2))
     assert float(linear.max()) < 1e-9  # the fitted vertex values follow the slope to the border
-    averaged = element_errors(mesh, field(mesh, lambda p: 1.0 + 3.0 * p[0] + 2.0 * p[2]), vertex_values)  # the paper's mean
-    assert float(averaged[inside].max()) < 1e-9
+    border = element_errors(mesh, field(mesh, lambda p: 1.0 + 3.0 * p[0] + 2.0 * p[2]), averaged)  # the paper's mean
+    assert float(border[inside].max()) < 1e-9
     # an averaged vertex on the border has only the elements beside it, missing half an element's slope
-    assert float(averaged[~inside].max()) > 0.1
+    assert float(border[~inside].max()) > 0.1
     fine = grid(element_size=0.0625)
-    step = element_errors(fine, field(fine, lambda p: 1.0 if p[0] < 0.5 else 2.0), vertex_values)
+    step = element_errors(fine, field(fine, lambda p: 1.0 if p[0] < 0.5 else 2.0), averaged)
     x = fine.corners[:, :, 0]
     near = ((x - 0.5).abs() < 0.13).any(dim=1)  # within two elements of the step
     far = ~near & ((x > 0.07) & (x < 0.93)).all(dim=1)
+    assert int(far.sum()) > 50 and float(step[far].max()) < 1e-9 and float(step[near].max()) > 0.1
+
+
+def test_shaded_inside_elements_the_estimate_vanishes_for_a_quadratic_field_and_finds_a_step():
+    """The default picture is exact for quadratic light, and so is the element's own fit the
+    estimate holds it to: inside the floor (elements whose fits see whole rings) both agree
+    to rounding; a step is found within two elements of it and nowhere far from it."""
+    mesh = grid(element_size=0.0625)
+    values = element_means(mesh, lambda x, z: 1.0 + x + 0.5 * z + 0.3 * x * x + 0.2 * x * z - 0.1 * z * z)
+    quadratic = element_errors(mesh, values[:, None].expand(-1, 3).contiguous(), picture_shading)
+    inside = ((mesh.corners[:, :, [0, 2]] > 0.26) & (mesh.corners[:, :, [0, 2]] < 0.74)).all(dim=(1, 2))
+    assert int(inside.sum()) > 20 and float(quadratic[inside].max()) < 1e-9
+    fine = grid(element_size=0.0625)
+    step = element_errors(fine, field(fine, lambda p: 1.0 if p[0] < 0.5 else 2.0), picture_shading)
+    x = fine.corners[:, :, 0]
+    near = ((x - 0.5).abs() < 0.13).any(dim=1)
+    far = ~near & ((x > 0.2) & (x < 0.8)).all(dim=1)
     assert int(far.sum()) > 50 and float(step[far].max()) < 1e-9 and float(step[near].max()) > 0.1
 
 
@@ -147,7 +175,7 @@ def test_power_balances_to_1e9_through_rounds_of_late_splits():
     refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
     try:
         rounds = refine_by_answer(solver, refiner, 9 * T, 0.0, 2, lambda: solver.run(10_000, 1e-3),
-                                  vertex_values=vertex_values)
+                                  display=averaged)
         s = solver.state
         assert_power_balances(s, solver.areas, solver.reflectance, solver.emission, solver.emitted_power, rtol=1e-9)
         assert len(rounds) == 3 and rounds[-1].elements > T
@@ -196,7 +224,7 @@ def test_rounds_stop_at_the_tolerance_and_make_no_round_for_a_sliver_of_it():
         try:
             reports.append(refine_by_answer(solver, Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E),
                                             100 * T, tolerance, 4, lambda: solver.run(10_000, 1e-2),
-                                            vertex_values=vertex_values, estimate=lambda: next(estimates)))
+                                            display=averaged, estimate=lambda: next(estimates)))
         finally:
             solver.close()
     at_twice, near = reports
@@ -216,7 +244,7 @@ def test_rounds_stop_at_the_tolerance_and_make_no_round_for_a_sliver_of_it():
     budget = 3 * T
     try:
         rounds = refine_by_answer(solver, refiner, budget, 0.0, 4, lambda: solver.run(10_000, 1e-2),
-                                  vertex_values=vertex_values)
+                                  display=averaged)
     finally:
         solver.close()
     assert all(r.elements <= budget for r in rounds) and rounds[-1].elements > 0.9 * budget
@@ -240,7 +268,7 @@ def test_every_run_reports_its_estimated_error():
     result = hemirad.solve(_small_cornell(0.05))
     mesh = result.mesh
     assert result.stats["interpolation_error"] == estimated_relative_error(mesh, result.radiosity, emission=result.emission,
-                                                                          vertex_values=reconstructed_vertex_values)
+                                                                          display=picture_shading)
     assert result.stats["estimated_error"] == result.estimate_error().relative_rms  # the same points: deterministic
     assert result.stats["refine"]["rounds"] is None
 

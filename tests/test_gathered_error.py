@@ -52,9 +52,7 @@ def measured_error(result, points: torch.Tensor, element: torch.Tensor, barycent
 def test_the_estimate_reads_the_error_a_closed_form_measures(element_size):
     """At the estimate's own points, within 5% of the error measured from the closed form
     (the gathers' hemicubes are what differ); over an independent, denser sampling within
-    10% (the estimate's 600 samples, stratified by area, against 3,000). The interpolation
-    estimate the elements are ranked by reads 1.1-2.9x over it here (it takes the error at
-    the elements' corners, where the shading's error is largest)."""
+    10% (the estimate's 600 samples, stratified by area, against 3,000)."""
     result = hemirad.solve(lamp_over_floor(element_size))
     mesh = result.mesh
     estimate = result.stats["estimated_error"]

@@ -70,32 +70,28 @@ def _tangent_frames(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
     V = len(mesh.vertices)
     normal = torch.zeros(V, 3, dtype=torch.float64, device=mesh.vertices.device).index_add_(
         0, mesh.triangles.reshape(-1), (mesh.normals * mesh.areas[:, None]).repeat_interleave(3, dim=0))
-    normal = normal / normal.norm(dim=1, keepdim=True).clamp(min=1e-300)
-    helper = torch.zeros_like(normal)
-    helper[:, 0] = (normal[:, 0].abs() < 0.9).to(normal.dtype)
-    helper[:, 1] = 1.0 - helper[:, 0]
-    u = torch.linalg.cross(normal, helper)
-    u = u / u.norm(dim=1, keepdim=True).clamp(min=1e-300)
-    return u, torch.linalg.cross(normal, u)
+    return _plane_frames(normal / normal.norm(dim=1, keepdim=True).clamp(min=1e-300))
 
 
 @dataclass(frozen=True)
 class _FitProblem:
-    """The least-squares problem of every vertex's fit, which depends on the mesh alone: the
-    (vertex, element) pairs within two rings, sorted by vertex, each pair's basis (the
-    element's means of 1, x, y, x^2, xy, y^2 in its vertex's tangent frame, in units of the
-    vertex's element size) and weight."""
+    """The weighted least-squares problems of fits around P centres (the vertices, or the
+    elements), which depend on the mesh alone: the (centre, element) pairs, sorted by
+    centre, each pair's basis (the element's means of 1, x, y, x^2, xy, y^2 in its centre's
+    tangent frame, in units of the centre's element size) and weight."""
 
-    vertex: torch.Tensor  # (Q,)
+    centre: torch.Tensor  # (Q,)
     element: torch.Tensor  # (Q,)
     basis: torch.Tensor  # (Q, 6)
     weight: torch.Tensor  # (Q,)
-    u: torch.Tensor  # (V, 3) the tangent frames
-    w: torch.Tensor  # (V, 3)
-    size: torch.Tensor  # (V,) each vertex's element size
+    origin: torch.Tensor  # (P, 3) the centres
+    u: torch.Tensor  # (P, 3) their tangent frames
+    w: torch.Tensor  # (P, 3)
+    size: torch.Tensor  # (P,) their element sizes
 
 
 def _fit_problem(mesh: Mesh) -> _FitProblem:
+    """The problems of the vertices' fits: each to the elements within two rings of it."""
     device = mesh.vertices.device
     V = len(mesh.vertices)
     vertex, element = vertex_element_pairs(mesh)
@@ -105,11 +101,40 @@ def _fit_problem(mesh: Mesh) -> _FitProblem:
     ring_count = torch.zeros(V, dtype=torch.float64, device=device).index_add_(
         0, corner_vertex, torch.ones(3 * mesh.num_elements, dtype=torch.float64, device=device))
     size = (ring_area / ring_count.clamp(min=1)).sqrt().clamp(min=1e-300)  # (V,) the vertex's element size
+    return _problem_around(mesh, mesh.vertices, u, w, size, vertex, element)
 
-    # the pairs' coordinates in their vertex's tangent plane, in units of its element size
-    scale = size.index_select(0, vertex)[:, None]
-    uq, wq = u.index_select(0, vertex), w.index_select(0, vertex)
-    offset = mesh.centroids.index_select(0, element) - mesh.vertices.index_select(0, vertex)  # (Q, 3)
+
+def _element_fit_problem(mesh: Mesh) -> _FitProblem:
+    """The problems of the elements' own fits: each to itself and the elements that share a
+    vertex with it, around its centroid, in its plane."""
+    u, w = _plane_frames(mesh.normals)
+    T = mesh.num_elements
+    corner_element = torch.arange(T, device=mesh.triangles.device).repeat_interleave(3)
+    with warnings.catch_warnings():  # torch's notes on its sparse support, not about these tensors
+        warnings.simplefilter("ignore", UserWarning)
+        incidence = torch.sparse_coo_tensor(
+            torch.stack([corner_element, mesh.triangles.reshape(-1)]),
+            torch.ones(3 * T, dtype=torch.float64, device=corner_element.device), (T, len(mesh.vertices))).coalesce()
+        near = torch.sparse.mm(incidence, incidence.t()).coalesce().indices()  # (2, Q) sorted by element
+    return _problem_around(mesh, mesh.centroids, u, w, mesh.areas.sqrt().clamp(min=1e-300), near[0], near[1])
+
+
+def _plane_frames(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(P, 3), (P, 3): two unit vectors spanning the planes of unit ``normal`` (P, 3)."""
+    helper = torch.zeros_like(normal)
+    helper[:, 0] = (normal[:, 0].abs() < 0.9).to(normal.dtype)
+    helper[:, 1] = 1.0 - helper[:, 0]
+    u = torch.linalg.cross(normal, helper)
+    u = u / u.norm(dim=1, keepdim=True).clamp(min=1e-300)
+    return u, torch.linalg.cross(normal, u)
+
+
+def _problem_around(mesh: Mesh, origin: torch.Tensor, u: torch.Tensor, w: torch.Tensor, size: torch.Tensor,
+                    centre: torch.Tensor, element: torch.Tensor) -> _FitProblem:
+    # the pairs' coordinates in their centre's tangent plane, in units of its element size
+    scale = size.index_select(0, centre)[:, None]
+    uq, wq = u.index_select(0, centre), w.index_select(0, centre)
+    offset = mesh.centroids.index_select(0, element) - origin.index_select(0, centre)  # (Q, 3)
     x, y = (offset * uq).sum(1) / scale[:, 0], (offset * wq).sum(1) / scale[:, 0]
     # an element's mean of x^2 is its centroid's x^2 plus (1/12) sum over its corners of
     # (corner - centroid)_x^2 (a triangle's second moment), and alike for xy and y^2
@@ -119,7 +144,7 @@ def _fit_problem(mesh: Mesh) -> _FitProblem:
                          x * y + (sx * sy).sum(1) / 12, y * y + (sy * sy).sum(1) / 12], 1)  # (Q, 6)
     weight = (mesh.areas.index_select(0, element) / (scale[:, 0] * scale[:, 0])
               * torch.exp(-(x * x + y * y) / (2 * FIT_WIDTH * FIT_WIDTH)))  # (Q,)
-    return _FitProblem(vertex, element, basis, weight, u, w, size)
+    return _FitProblem(centre, element, basis, weight, origin.to(torch.float64), u, w, size)
 
 
 def _normal_matrices(problem: _FitProblem, terms: int, V: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -127,7 +152,7 @@ def _normal_matrices(problem: _FitProblem, terms: int, V: int) -> tuple[torch.Te
     too ill conditioned to solve, and (V,) bool: where it was not."""
     X = problem.basis[:, :terms]
     normal_matrix = torch.zeros(V, terms, terms, dtype=torch.float64, device=X.device).index_add_(
-        0, problem.vertex, problem.weight[:, None, None] * X[:, :, None] * X[:, None, :])
+        0, problem.centre, problem.weight[:, None, None] * X[:, :, None] * X[:, None, :])
     singular = torch.linalg.svdvals(normal_matrix)  # (V, terms), descending
     posed = (singular[:, -1] * MAX_CONDITION > singular[:, 0]) & (singular[:, 0] > 0)
     safe = torch.where(posed[:, None, None], normal_matrix, torch.eye(terms, dtype=torch.float64, device=X.device))
@@ -135,9 +160,9 @@ def _normal_matrices(problem: _FitProblem, terms: int, V: int) -> tuple[torch.Te
 
 
 def _fitted_range(problem: _FitProblem, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(V, C), (V, C): the least and greatest of the element values each vertex's fit saw."""
+    """(P, C), (P, C): the least and greatest of the element values each centre's fit saw."""
     V, C = len(problem.size), values.shape[1]
-    index = problem.vertex[:, None].expand(-1, C)
+    index = problem.centre[:, None].expand(-1, C)
     near = values.index_select(0, problem.element)
     low = torch.full((V, C), float("inf"), dtype=torch.float64, device=values.device).scatter_reduce(0, index, near, "amin")
     high = torch.full((V, C), -float("inf"), dtype=torch.float64, device=values.device).scatter_reduce(0, index, near, "amax")
@@ -168,7 +193,7 @@ def quadratic_vertex_values(mesh: Mesh, element_values: torch.Tensor) -> torch.T
     if mesh.num_elements == 0:
         return mean[:, 0] if squeeze else mean
     problem = _fit_problem(mesh)
-    vertex, element, basis, weight = problem.vertex, problem.element, problem.basis, problem.weight
+    vertex, element, basis, weight = problem.centre, problem.element, problem.basis, problem.weight
 
     fits = []  # (posed (V,), value (V, C)) of the quadratic, then the linear fit
     for terms in (6, 3):
@@ -198,51 +223,57 @@ def quadratic_vertex_values(mesh: Mesh, element_values: torch.Tensor) -> torch.T
 
 
 @dataclass(frozen=True)
-class VertexFits:
-    """The polynomial fitted around every vertex (``vertex_fits``), to be read near it."""
+class LocalFits:
+    """The polynomial fitted around each of P centres (the vertices: ``vertex_fits``; the
+    elements: ``element_fits``), to be read near it."""
 
-    origin: torch.Tensor  # (V, 3) the vertices
-    u: torch.Tensor  # (V, 3), (V, 3) their tangent frames
+    origin: torch.Tensor  # (P, 3) the centres
+    u: torch.Tensor  # (P, 3), (P, 3) their tangent frames
     w: torch.Tensor
-    size: torch.Tensor  # (V,) their element sizes, the unit of x and y
-    coefficients: torch.Tensor  # (V, 6, C) of 1, x, y, x^2, xy, y^2
-    low: torch.Tensor  # (V, C), (V, C): the range of the element values fitted to
+    size: torch.Tensor  # (P,) their element sizes, the unit of x and y
+    coefficients: torch.Tensor  # (P, 6, C) of 1, x, y, x^2, xy, y^2
+    low: torch.Tensor  # (P, C), (P, C): the range of the element values fitted to
     high: torch.Tensor
 
-    def at(self, vertex: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-        """(..., C) the fits of ``vertex`` (...,) at ``points`` (..., 3)."""
-        offset = points - self.origin[vertex]
-        size = self.size[vertex]
-        x, y = (offset * self.u[vertex]).sum(-1) / size, (offset * self.w[vertex]).sum(-1) / size
+    def at(self, centre: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """(..., C) the fits of ``centre`` (...,) at ``points`` (..., 3)."""
+        offset = points - self.origin[centre]
+        size = self.size[centre]
+        x, y = (offset * self.u[centre]).sum(-1) / size, (offset * self.w[centre]).sum(-1) / size
         basis = torch.stack([torch.ones_like(x), x, y, x * x, x * y, y * y], -1)  # (..., 6)
-        return (basis[..., :, None] * self.coefficients[vertex]).sum(-2)
+        return (basis[..., :, None] * self.coefficients[centre]).sum(-2)
 
 
-def vertex_fits(mesh: Mesh, element_values: torch.Tensor, fallback: torch.Tensor) -> VertexFits:
+def vertex_fits(mesh: Mesh, element_values: torch.Tensor, fallback: torch.Tensor) -> LocalFits:
     """The whole polynomial of every vertex's fit (``quadratic_vertex_values`` keeps only its
     value at the vertex): the quadratic where it is well posed, else the linear fit, else the
-    constant ``fallback`` (V, C) (the vertex's shown value).
+    constant ``fallback`` (V, C) (the vertex's shown value). ``element_values``: (T, C)."""
+    return _fits(_fit_problem(mesh), element_values, fallback)
 
-    Args:
-        mesh: the mesh; element_values: (T, C) each element's mean value.
-        fallback: (V, C) the value of a vertex with neither fit.
-    """
-    device = mesh.vertices.device
-    values = torch.as_tensor(element_values).to(device=device, dtype=torch.float64)
-    V, C = len(mesh.vertices), values.shape[1]
-    problem = _fit_problem(mesh)
-    coefficients = torch.zeros(V, 6, C, dtype=torch.float64, device=device)
+
+def element_fits(mesh: Mesh, element_values: torch.Tensor) -> LocalFits:
+    """Every element's own quadratic, fitted (as the vertices' are, by the elements' means)
+    to its value and those of the elements sharing a vertex with it, around its centroid:
+    where that is ill posed, the linear fit, else its value. ``element_values``: (T, C)."""
+    values = torch.as_tensor(element_values).to(device=mesh.vertices.device, dtype=torch.float64)
+    return _fits(_element_fit_problem(mesh), values, values)
+
+
+def _fits(problem: _FitProblem, element_values: torch.Tensor, fallback: torch.Tensor) -> LocalFits:
+    values = torch.as_tensor(element_values).to(device=problem.origin.device, dtype=torch.float64)
+    P, C = len(problem.size), values.shape[1]
+    coefficients = torch.zeros(P, 6, C, dtype=torch.float64, device=values.device)
     coefficients[:, 0] = fallback
     for terms in (3, 6):  # the quadratic, where posed, over the linear fit
         X = problem.basis[:, :terms]
-        safe, posed = _normal_matrices(problem, terms, V)
-        rhs = torch.zeros(V, terms, C, dtype=torch.float64, device=device).index_add_(
-            0, problem.vertex, (problem.weight[:, None] * X)[:, :, None] * values.index_select(0, problem.element)[:, None, :])
+        safe, posed = _normal_matrices(problem, terms, P)
+        rhs = torch.zeros(P, terms, C, dtype=torch.float64, device=values.device).index_add_(
+            0, problem.centre, (problem.weight[:, None] * X)[:, :, None] * values.index_select(0, problem.element)[:, None, :])
         fit = torch.zeros_like(coefficients)
         fit[:, :terms] = torch.linalg.solve(safe, rhs)
         coefficients = torch.where(posed[:, None, None], fit, coefficients)
     low, high = _fitted_range(problem, values)
-    return VertexFits(mesh.vertices.to(torch.float64), problem.u, problem.w, problem.size, coefficients, low, high)
+    return LocalFits(problem.origin, problem.u, problem.w, problem.size, coefficients, low, high)
 
 
 def reconstructed_vertex_values(mesh: Mesh, element_values: torch.Tensor, reconstruction: str = "quadratic") -> torch.Tensor:

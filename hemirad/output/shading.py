@@ -30,7 +30,7 @@ import torch
 
 from hemirad.geometry.mesh import Mesh
 from hemirad.output import display
-from hemirad.output.reconstruction import reconstructed_vertex_values, vertex_fits
+from hemirad.output.reconstruction import element_fits, reconstructed_vertex_values, vertex_fits
 
 #: Each display triangle is cut into 4**SHADING_LEVELS.
 SHADING_LEVELS = 2
@@ -83,6 +83,22 @@ class Shading:
         weights = torch.where(upper[:, None], upper_weights, lower_weights).clamp(min=0)
         point = self.lattice[piece[:, None], which]  # (S, 3) indices into positions
         return (weights[:, :, None] * self.values[point]).sum(1)
+
+    def element_deviation(self, mesh: Mesh, element_values: torch.Tensor) -> torch.Tensor:
+        """(T,) the RMS, over each element's lattice points, of the drawn value's distance
+        from the element's own quadratic (``reconstruction.element_fits``, fitted to the
+        ``element_values`` (T, 1) of it and its vertex-sharing neighbours): 0 where the light
+        is quadratic, large where it varies faster than the element resolves (the answer's
+        ranking, ``adaptive.answer.element_errors``)."""
+        n = 2 ** self.levels
+        lam = torch.tensor([[1 - (i + j) / n, i / n, j / n] for i, j in lattice_points(self.levels)],
+                           dtype=torch.float64, device=self.values.device)  # (K, 3)
+        T, K = mesh.num_elements, len(lam)
+        element = torch.arange(T, device=self.values.device).repeat_interleave(K)
+        coordinates = lam.repeat(T, 1)  # (T K, 3)
+        points = (mesh.corners.index_select(0, element).to(torch.float64) * coordinates[:, :, None]).sum(1)
+        model = element_fits(mesh, element_values).at(element, points)
+        return (model - self.at(mesh, element, coordinates)).pow(2).sum(1).reshape(T, K).mean(1).sqrt()
 
     def _piece_containing(self, mesh: Mesh, element: torch.Tensor, points: torch.Tensor):
         """(S,) the piece of each point's element that holds it, and (S, 3) its barycentric
