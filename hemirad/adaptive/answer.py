@@ -28,7 +28,6 @@ and a threshold cannot be tuned to a mesh size. Here the judge is the solution i
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, Protocol
 
@@ -36,7 +35,7 @@ import torch
 
 from hemirad.core.colour import luminance
 from hemirad.core.fastops import flatnonzero
-from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.mesh import Mesh, vertex_sharing_pairs
 from hemirad.scene.model import RefineOptions
 
 
@@ -59,22 +58,6 @@ if TYPE_CHECKING:
     from hemirad.adaptive.refine import Refiner
     from hemirad.transport.shooters import PatchShooters
     from hemirad.transport.solver import ProgressiveSolver
-
-
-def vertex_neighbours(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
-    """(P,) and (P,): the pairs (i, j), i != j, of elements that share a vertex (so the same
-    surface: vertices are not shared across surfaces)."""
-    T = mesh.num_elements
-    corner_element = torch.arange(T, device=mesh.triangles.device).repeat_interleave(3)
-    with warnings.catch_warnings():  # torch's notes on its sparse support, not about these tensors
-        warnings.simplefilter("ignore", UserWarning)
-        incidence = torch.sparse_coo_tensor(
-            torch.stack([corner_element, mesh.triangles.reshape(-1)]),
-            torch.ones(3 * T, dtype=torch.float64, device=corner_element.device), (T, len(mesh.vertices)),
-            check_invariants=False).coalesce()
-        pairs = torch.sparse.mm(incidence, incidence.t()).coalesce().indices()
-    i, j = pairs
-    return i[i != j], j[i != j]
 
 
 def element_errors(mesh: Mesh, radiosity: torch.Tensor, display: Display) -> torch.Tensor:
@@ -108,7 +91,8 @@ def element_errors(mesh: Mesh, radiosity: torch.Tensor, display: Display) -> tor
     if shading.levels > 0:
         return shading.element_deviation(mesh, value[:, None])
     shown = shading.values[:, 0][mesh.triangles]  # (T, 3) the vertex values at each corner
-    i, j = vertex_neighbours(mesh)
+    i, j = vertex_sharing_pairs(mesh)
+    i, j = i[i != j], j[i != j]
     centroids, normals = mesh.centroids, mesh.normals
     d = centroids.index_select(0, j) - centroids.index_select(0, i)  # (P, 3)
     w = mesh.areas.index_select(0, j)

@@ -6,6 +6,7 @@ vertices never blends across a crease or between objects.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable, Hashable
 
@@ -237,6 +238,22 @@ class Mesh:
             s_off += int(p.surface.max()) + 1 if len(p.surface) else 0
         return Mesh(torch.cat(vertices), torch.cat(triangles), torch.cat(surface), torch.cat(material), names,
                     torch.cat(level), torch.cat(parents))
+
+
+def vertex_sharing_pairs(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor]:
+    """(P,) and (P,): the pairs (i, j) of elements that share a vertex, each element with
+    itself included, sorted by i (the same surface only: vertices are not shared across
+    surfaces)."""
+    T = mesh.num_elements
+    corner_element = torch.arange(T, device=mesh.triangles.device).repeat_interleave(3)
+    with warnings.catch_warnings():  # torch's notes on its sparse support, not about these tensors
+        warnings.simplefilter("ignore", UserWarning)
+        incidence = torch.sparse_coo_tensor(
+            torch.stack([corner_element, mesh.triangles.reshape(-1)]),
+            torch.ones(3 * T, dtype=torch.float64, device=corner_element.device), (T, len(mesh.vertices)),
+            check_invariants=False).coalesce()
+        i, j = torch.sparse.mm(incidence, incidence.t()).coalesce().indices()
+    return i, j
 
 
 def barycentric(triangles: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import torch
 
-from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.mesh import Mesh, vertex_sharing_pairs
 from hemirad.output import display
 from hemirad.scene.model import RECONSTRUCTION_CHOICES
 
@@ -108,15 +108,8 @@ def _element_fit_problem(mesh: Mesh) -> _FitProblem:
     """The problems of the elements' own fits: each to itself and the elements that share a
     vertex with it, around its centroid, in its plane."""
     u, w = _plane_frames(mesh.normals)
-    T = mesh.num_elements
-    corner_element = torch.arange(T, device=mesh.triangles.device).repeat_interleave(3)
-    with warnings.catch_warnings():  # torch's notes on its sparse support, not about these tensors
-        warnings.simplefilter("ignore", UserWarning)
-        incidence = torch.sparse_coo_tensor(
-            torch.stack([corner_element, mesh.triangles.reshape(-1)]),
-            torch.ones(3 * T, dtype=torch.float64, device=corner_element.device), (T, len(mesh.vertices))).coalesce()
-        near = torch.sparse.mm(incidence, incidence.t()).coalesce().indices()  # (2, Q) sorted by element
-    return _problem_around(mesh, mesh.centroids, u, w, mesh.areas.sqrt().clamp(min=1e-300), near[0], near[1])
+    element, near = vertex_sharing_pairs(mesh)
+    return _problem_around(mesh, mesh.centroids, u, w, mesh.areas.sqrt().clamp(min=1e-300), element, near)
 
 
 def _plane_frames(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
