@@ -76,10 +76,11 @@ def element_errors(mesh: Mesh, radiosity: torch.Tensor, display: Display) -> tor
     by their means). Where the radiosity is quadratic both are exact and the estimate is 0;
     it grows where the light varies faster than an element resolves (a shadow edge, a
     contact's corner), which the vertex fits' clamped blend and the element's own fit see
-    differently. Measured (from x2 and x1 to a third of the finest uniform mesh's elements,
-    the three bundled scenes): relative MSE 0.90-0.97x the Gouraud ranking's with the same
-    shading; the estimate reads 0.55-0.94x the measured error, where the Gouraud one read
-    1.2-1.7x the Gouraud picture's.
+    differently. Measured (to a third of the finest uniform mesh's elements, the three
+    bundled scenes): relative MSE 0.90-0.98x the Gouraud ranking's with the same shading
+    from x2, about the same from x1 on the Cornell box, 1.09x on floating; the estimate
+    reads 0.55-0.94x the measured error, where the Gouraud one read 1.2-1.7x the Gouraud
+    picture's (and 3x on floating's finest shaded one).
 
     Args:
         mesh: the elements; radiosity: (T, 3) the radiosity shown.
