@@ -3,9 +3,10 @@ surfaces, the displayed radiosity against a final gather of the solved radiosity
 (docs/DESIGN.md §3.8).
 
 What a user is shown at a point x of element k is the picture's shading there
-(``output.shading``: the fitted quadratics around the element's corners, blended). What the solution says x receives is a final gather: a
-hemicube at x, every pixel's delta form factor times the radiosity of the element it sees,
-so B(x) = E_k + rho_k sum_j F_xj B_j (``lighting.sensors``). The gather resolves what the
+(``output.shading``: the fitted quadratics around the element's corners, blended). What
+the solution says x receives is a final gather: a hemicube at x, every pixel's delta form
+factor times the radiosity of the element it sees, so B(x) = E_k + rho_k sum_j F_xj B_j
+(``lighting.sensors``). The gather resolves what the
 mesh cannot: a shadow edge or a penumbra inside an element, light falling off over a large
 wall element, a contact line; and it does not trust the element's own value. The relative
 RMS difference of the two over sampled points estimates the displayed solution's error:

@@ -17,8 +17,8 @@ L = B / pi in every direction, so:
 * both are linear RGB in the scene's units; neither depends on the unit of length.
 
 What differs by construction is only the discretisation under test: constant radiosity per
-element, its reconstruction over the surfaces (vertex fits and shading), the hemicube's point-sampled form
-factors and the unshot energy. Both images box-filter each pixel (Mitsuba with a box
+element, its reconstruction over the surfaces (vertex fits and shading), the hemicube's
+point-sampled form factors and the unshot energy. Both images box-filter each pixel (Mitsuba with a box
 reconstruction filter, hemirad by supersampling), and compared views are supersampled 8x so
 that edge aliasing stays well below the errors measured.
 """
