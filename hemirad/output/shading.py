@@ -17,10 +17,10 @@ Elements with T-vertices are drawn as ``display.conforming_triangles`` cuts them
 pieces), so the lattice's edges meet the finer neighbours' edges point for point.
 
 Measured (converged, against the path-traced references; the same solutions shown both ways):
-relative MSE 0.69-0.75x Gouraud's on the finest uniform meshes of the three bundled scenes
-(about 10,000 elements), 0.43-0.69x on the answer's refined runs with a third of the
-elements, where more of the error is smooth variation over large elements (levels 2; levels
-1 gives 0.50-0.77x).
+relative MSE 0.68-0.73x Gouraud's on the finest uniform meshes of the three bundled scenes
+(about 10,000 elements), 0.42-0.66x on the answer's refined runs with a third of the
+elements, where more of the error is smooth variation over large elements. One level (4
+triangles an element) gave 0.73-0.77x and 0.50-0.73x.
 """
 from __future__ import annotations
 
