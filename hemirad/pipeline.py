@@ -102,6 +102,7 @@ class Result:
     stats: dict = field(default_factory=dict)
     sensors: survey.SensorReadings | None = None
     grids: dict[str, survey.GridReadings] = field(default_factory=dict)
+    _shading: tuple | None = field(default=None, init=False, repr=False, compare=False)  # (settings, Shading)
 
     @classmethod
     def of_solver(cls, scene: Scene, solver: ProgressiveSolver) -> "Result":
@@ -115,7 +116,7 @@ class Result:
         scene's ``solver.error_samples`` points (``evaluation.gathered_error``); None for 0."""
         o = self.scene.solver
         return gathered_error(self.mesh, self.display_radiosity, self.emission, self.reflectance,
-                              o.error_samples, o.resolution, reconstruction=o.reconstruction)
+                              o.error_samples, o.resolution, shading=self.shading())
 
     def estimate_image_error(self, camera: Camera | None = None, samples: int | None = None,
                              mask=None) -> GatheredError | None:
@@ -127,7 +128,7 @@ class Result:
         return image_gathered_error(self.mesh, self.display_radiosity, self.emission, self.reflectance,
                                     self.scene.camera if camera is None else camera,
                                     o.error_samples if samples is None else samples, o.resolution, mask=mask,
-                                    reconstruction=o.reconstruction)
+                                    shading=self.shading())
 
     @property
     def ambient(self) -> torch.Tensor:
@@ -174,8 +175,12 @@ class Result:
         """The display radiosity as pictures draw it (``output.shading``): each element cut
         into a lattice shaded from the fitted quadratics around its corners, or, with
         ``solver.reconstruction: mean`` (the paper's), the vertex values Gouraud-shaded.
-        ``vertex_radiosity``: ``vertex_radiosity()``, to reuse one already computed."""
-        return picture_shading(self.mesh, self.display_radiosity, self.scene.solver.reconstruction, vertex_radiosity)
+        Made once for the settings it reads. ``vertex_radiosity``: ``vertex_radiosity()``, to
+        reuse one already computed."""
+        settings = (self.scene.solver.reconstruction, self.scene.solver.ambient)
+        if self._shading is None or self._shading[0] != settings:
+            self._shading = settings, picture_shading(self.mesh, self.display_radiosity, settings[0], vertex_radiosity)
+        return self._shading[1]
 
     def linear_image(self, shading: Shading | None = None) -> np.ndarray:
         """(height, width, 3) float32 camera view of the display radiosity: linear, in the
@@ -562,7 +567,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
             saver.finish()
     finally:
         solver.close()
-    result = Result.of_solver(scene, solver)
+    result = estimate.result()
     final = result.mesh
     stats = result.stats
     stats.update(_stats(scene, solver, final, mesh.num_elements, elapsed(), resumed_from, rounds, answer_refiner))
@@ -647,19 +652,28 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
 class _ErrorEstimate:
     """The final-gather estimate of ``solver``'s current solution (``Result.estimate_error``)
     and its seconds, made once per (shots, elements): the last round's of refinement judged
-    on the answer is the finished run's."""
+    on the answer is the finished run's, and its ``result()`` (its picture's shading made
+    once) is the run's."""
 
     def __init__(self, scene: Scene, solver: ProgressiveSolver):
         self.scene, self.solver = scene, solver
-        self._made: tuple | None = None  # (shots, elements), the estimate, its seconds
+        self._key: tuple | None = None  # (shots, elements) of the solution below
+        self._result: Result | None = None
+        self._estimate: tuple | None = None  # the estimate, its seconds
+
+    def result(self) -> Result:
+        """The solver's current solution (``Result.of_solver``)."""
+        key = (self.solver.state.shots, self.solver.mesh.num_elements)
+        if key != self._key:
+            self._key, self._result, self._estimate = key, Result.of_solver(self.scene, self.solver), None
+        return self._result
 
     def __call__(self) -> tuple[GatheredError | None, float]:
-        key = (self.solver.state.shots, self.solver.mesh.num_elements)
-        if self._made is None or self._made[0] != key:
+        result = self.result()
+        if self._estimate is None:
             start = time.perf_counter()
-            gathered = Result.of_solver(self.scene, self.solver).estimate_error()
-            self._made = (key, gathered, time.perf_counter() - start)
-        return self._made[1], self._made[2]
+            self._estimate = result.estimate_error(), time.perf_counter() - start
+        return self._estimate
 
 
 class _CheckpointWriter:

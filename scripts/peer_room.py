@@ -10,7 +10,8 @@ the furnished room of a public radiosity program that the project compares again
 room3, converted). Prints the solve's seconds, shots, hemicubes, patches, elements, peak
 resident memory (and the part of it that importing torch alone takes), the power that
 escaped through back faces, and the relative error of the luminance at the points (median,
-90th percentile, largest, and the mean signed error: a bias).
+90th percentile, largest, and the mean signed error: a bias), of the element values there and
+of the picture as drawn (``Result.shading``: shaded inside the elements).
 """
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ RSS_AFTER_IMPORT_MB = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 import hemirad  # noqa: E402  (imported after the measurement above)
 from hemirad.evaluation.metrics import luminance  # noqa: E402
 from hemirad.evaluation.surface_points import elements_at  # noqa: E402
+from hemirad.geometry.mesh import barycentric  # noqa: E402
 
 
 def measure(scene_path: Path, points_path: Path, args) -> dict:
@@ -55,20 +57,23 @@ def measure(scene_path: Path, points_path: Path, args) -> dict:
     normals = torch.as_tensor(data["normals"], dtype=torch.float64)
     where = elements_at(result.mesh, points, normals)
     found = (where >= 0).numpy()
-    ours = luminance(result.radiosity.numpy()[where.numpy()[found]])
+    element = where[torch.as_tensor(found)]
+    coordinates = barycentric(result.mesh.corners[element], points[torch.as_tensor(found)]).clamp(min=0)
+    shown = result.shading().at(result.mesh, element, coordinates / coordinates.sum(1, keepdim=True))
     truth = luminance(data["B"][found])
-    error = ours / truth - 1
+    errors = {"element": luminance(result.radiosity.numpy()[element.numpy()]) / truth - 1,
+              "shown": luminance(shown.numpy()) / truth - 1}
     emitted = float(sum(stats["emitted_power"]))
     report = {
         "seconds": seconds, "shots": stats["shots"], "hemicubes": stats["hemicubes_rendered"],
         "patches": stats["patches"], "elements": stats["elements"], "unshot": stats["unshot_fraction"],
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "import_mb": RSS_AFTER_IMPORT_MB, "escaped": float(sum(stats["escaped_power"])) / emitted,
-        "points": int(found.sum()), "of": len(found),
-        "median": float(np.median(np.abs(error))), "p90": float(np.percentile(np.abs(error), 90)),
-        "max": float(np.abs(error).max()), "bias": float(error.mean()),
-        "estimated": stats["estimated_error"],
-        "rms": float(np.sqrt((((ours - truth) ** 2).sum()) / (truth ** 2).sum())),
+        "points": int(found.sum()), "of": len(found), "estimated": stats["estimated_error"],
+        "errors": {kind: {"median": float(np.median(np.abs(error))), "p90": float(np.percentile(np.abs(error), 90)),
+                          "max": float(np.abs(error).max()), "bias": float(error.mean()),
+                          "rms": float(np.sqrt(((error * truth) ** 2).sum() / (truth ** 2).sum()))}
+                   for kind, error in errors.items()},
     }
     if profile:
         pstats.Stats(profile).sort_stats(args.sort).print_stats(40)
@@ -96,10 +101,12 @@ def main() -> None:
           f"{r['hemicubes']:,} hemicubes; peak memory {r['peak_mb']:.0f} MB "
           f"({r['import_mb']:.0f} MB of it importing torch and numpy)")
     print(f"escaped through back faces: {100 * r['escaped']:.2f}% of the emitted power")
-    print(f"luminance error at {r['points']} of {r['of']} points: median {100 * r['median']:.1f}%, "
-          f"90th percentile {100 * r['p90']:.1f}%, largest {100 * r['max']:.1f}%, mean {100 * r['bias']:+.1f}%; "
-          f"relative RMS {100 * r['rms']:.1f}% (the run's own estimate over all its surfaces: "
-          f"{100 * r['estimated']:.1f}%)")
+    for kind, label in (("element", "element values"), ("shown", "the picture as drawn")):
+        e = r["errors"][kind]
+        print(f"luminance error at {r['points']} of {r['of']} points, {label}: median {100 * e['median']:.1f}%, "
+              f"90th percentile {100 * e['p90']:.1f}%, largest {100 * e['max']:.1f}%, mean {100 * e['bias']:+.1f}%; "
+              f"relative RMS {100 * e['rms']:.1f}%")
+    print(f"the run's own estimate over all its surfaces: {100 * r['estimated']:.1f}%")
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ from hemirad.geometry.analytic import point_to_polygon
 from hemirad.geometry.mesh import Mesh, barycentric
 from hemirad.output import display
 from hemirad.output.reconstruction import reconstructed_vertex_values
-from hemirad.output.shading import gouraud_shading, lattice_points, picture_shading, quadratic_shading
+from hemirad.output.shading import gouraud_shading, lattice_coordinates, picture_shading, quadratic_shading
 from hemirad.scene.model import RefineOptions
 from patches import element_means, jittered_square
 
@@ -63,7 +63,7 @@ def test_every_point_is_drawn_once_so_the_shading_is_continuous_over_t_vertices(
     assert len(torch.unique(shading.positions.round(decimals=9), dim=0)) == len(shading.positions)
     # each point of every piece's lattice, read back through ``at`` from that piece's element
     pieces, source = shading.pieces, shading.source
-    lam = torch.tensor([[1 - (i + j) / 4, i / 4, j / 4] for i, j in lattice_points(2)], dtype=torch.float64)
+    lam = lattice_coordinates(2)
     points = (lam[None, :, :, None] * shading.positions[pieces][:, None]).sum(2).reshape(-1, 3)
     element = source.repeat_interleave(len(lam))
     coordinates = barycentric(refined.corners[element], points)

@@ -35,7 +35,7 @@ from hemirad.core.colour import luminance
 from hemirad.geometry.mesh import Mesh, barycentric
 from hemirad.lighting.sensors import final_gather
 from hemirad.output.render import render_view
-from hemirad.output.shading import picture_shading
+from hemirad.output.shading import Shading, picture_shading
 from hemirad.scene.model import Camera
 
 #: The share of a sample's (cosine-weighted) hemisphere in which it sees back faces above
@@ -99,7 +99,7 @@ def sample_points(mesh: Mesh, among: torch.Tensor, count: int, seed: int = 0
 
 def gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, reflectance: torch.Tensor,
                    samples: int = DEFAULT_SAMPLES, resolution: int = 128, seed: int = 0,
-                   reconstruction: str = "quadratic") -> GatheredError | None:
+                   shading: Shading | None = None) -> GatheredError | None:
     """Estimate the displayed solution's relative RMS error by final gathers at ``samples``
     points uniform by area over the non-emitting surfaces (see the module's docstring); None
     where there are none.
@@ -109,8 +109,8 @@ def gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, 
         emission, reflectance: (T, 3) each element's.
         resolution: the gathers' hemicube resolution.
         seed: of the sampling: the same mesh and seed give the same points.
-        reconstruction: how the display carries element values over the surfaces
-            (``output.shading.picture_shading``): the estimate is of what is shown.
+        shading: the picture drawn from ``radiosity`` (``output.shading``; default: the
+            quadratic ``picture_shading``): the estimate is of what is shown.
     """
     mesh = mesh.to("cpu")
     emission = torch.as_tensor(emission, dtype=torch.float64).cpu()
@@ -118,7 +118,7 @@ def gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, 
     if samples <= 0 or not bool(among.any()):
         return None
     element, coordinates, points = sample_points(mesh, among, samples, seed)
-    return _compare(mesh, radiosity, emission, reflectance, element, coordinates, points, resolution, reconstruction)
+    return _compare(mesh, radiosity, emission, reflectance, element, coordinates, points, resolution, shading)
 
 
 def pixel_points(mesh: Mesh, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
@@ -151,7 +151,7 @@ def pixel_points(mesh: Mesh, camera: Camera) -> tuple[torch.Tensor, torch.Tensor
 def image_gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, reflectance: torch.Tensor,
                          camera: Camera, samples: int = DEFAULT_SAMPLES, resolution: int = 128,
                          seed: int = 0, mask: np.ndarray | None = None,
-                         reconstruction: str = "quadratic") -> GatheredError | None:
+                         shading: Shading | None = None) -> GatheredError | None:
     """As ``gathered_error``, at the surface points seen by ``samples`` pixels drawn evenly
     (stratified, seeded) from those of ``camera``'s view that show a non-emitting element
     (and are in ``mask`` (H, W) bool, when given: a comparison's pixels): the error of the
@@ -171,7 +171,7 @@ def image_gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Te
     corners = mesh.corners.index_select(0, element)
     coordinates = inset_coordinates(barycentric(corners, points))
     points = (corners * coordinates[:, :, None]).sum(1)
-    return _compare(mesh, radiosity, emission, reflectance, element, coordinates, points, resolution, reconstruction)
+    return _compare(mesh, radiosity, emission, reflectance, element, coordinates, points, resolution, shading)
 
 
 def inset_coordinates(coordinates: torch.Tensor, inset: float = EDGE_INSET) -> torch.Tensor:
@@ -183,11 +183,12 @@ def inset_coordinates(coordinates: torch.Tensor, inset: float = EDGE_INSET) -> t
 
 
 def _compare(mesh: Mesh, radiosity, emission: torch.Tensor, reflectance, element: torch.Tensor,
-             coordinates: torch.Tensor, points: torch.Tensor, resolution: int, reconstruction: str) -> GatheredError | None:
+             coordinates: torch.Tensor, points: torch.Tensor, resolution: int, shading: Shading | None) -> GatheredError | None:
     """The estimate from N sampled points: (N,) their elements, (N, 3) their barycentric
     ``coordinates`` there and (N, 3) the points."""
     radiosity, reflectance = (torch.as_tensor(t, dtype=torch.float64).cpu() for t in (radiosity, reflectance))
-    shown = luminance(picture_shading(mesh, radiosity, reconstruction).at(mesh, element, coordinates))
+    shading = picture_shading(mesh, radiosity) if shading is None else shading
+    shown = luminance(shading.at(mesh, element, coordinates))
     normals = mesh.normals.index_select(0, element)
     gather = final_gather(mesh, radiosity, points.numpy(), normals.numpy(), resolution)
     gathered = luminance(emission.index_select(0, element) + reflectance.index_select(0, element) * gather.irradiance)

@@ -25,10 +25,11 @@ triangles an element) gave 0.73-0.77x and 0.50-0.73x.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 
-from hemirad.geometry.mesh import Mesh
+from hemirad.geometry.mesh import Mesh, barycentric
 from hemirad.output import display
 from hemirad.output.reconstruction import element_fits, reconstructed_vertex_values, vertex_fits
 
@@ -66,7 +67,7 @@ class Shading:
         """(S, C) the value drawn at points given by their ``element`` (S,) and barycentric
         ``coordinates`` (S, 3) on its corners (``mesh.triangles[element]``)."""
         points = (mesh.corners.index_select(0, element).to(torch.float64) * coordinates[:, :, None]).sum(1)
-        piece, lam = self._piece_containing(mesh, element, points)
+        piece, lam = self._piece_containing(element, points)
         n = 2 ** self.levels
         s, t = (lam[:, 1] * n).clamp(min=0), (lam[:, 2] * n).clamp(min=0)
         i = s.floor().clamp(max=n - 1)
@@ -91,9 +92,7 @@ class Shading:
         their range): 0 where the light
         is quadratic, large where it varies faster than the element resolves (the answer's
         ranking, ``adaptive.answer.element_errors``)."""
-        n = 2 ** self.levels
-        lam = torch.tensor([[1 - (i + j) / n, i / n, j / n] for i, j in lattice_points(self.levels)],
-                           dtype=torch.float64, device=self.values.device)  # (K, 3)
+        lam = lattice_coordinates(self.levels).to(self.values.device)  # (K, 3)
         T, K = mesh.num_elements, len(lam)
         element = torch.arange(T, device=self.values.device).repeat_interleave(K)
         coordinates = lam.repeat(T, 1)  # (T K, 3)
@@ -108,19 +107,25 @@ class Shading:
         model = torch.minimum(torch.maximum(fits.at(element, points), 2 * low - high), 2 * high - low)
         return (model - self.at(mesh, element, coordinates)).pow(2).sum(1).reshape(T, K).mean(1).sqrt()
 
-    def _piece_containing(self, mesh: Mesh, element: torch.Tensor, points: torch.Tensor):
+    @cached_property
+    def _pieces_by_element(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The pieces sorted by element (P,), and (T,) where each element's begin and how many
+        it has (every element has one at least)."""
+        order = torch.argsort(self.source, stable=True)
+        count = torch.bincount(self.source)
+        return order, torch.cumsum(count, 0) - count, count
+
+    def _piece_containing(self, element: torch.Tensor, points: torch.Tensor):
         """(S,) the piece of each point's element that holds it, and (S, 3) its barycentric
         coordinates there."""
-        order = torch.argsort(self.source, stable=True)
-        count = torch.bincount(self.source, minlength=mesh.num_elements)
-        start = torch.cumsum(count, 0) - count
+        order, start, count = self._pieces_by_element
         best_piece = torch.zeros(len(element), dtype=torch.int64, device=element.device)
         best_lam = torch.zeros(len(element), 3, dtype=torch.float64, device=element.device)
         best_fit = torch.full((len(element),), -float("inf"), dtype=torch.float64, device=element.device)
         for c in range(int(count.max()) if len(count) else 0):
             has = count.index_select(0, element) > c
             piece = order[(start.index_select(0, element) + c).clamp(max=len(order) - 1)]
-            lam = _barycentric(self.positions[self.pieces[piece]], points)
+            lam = barycentric(self.positions[self.pieces[piece]], points)
             fit = torch.where(has, lam.amin(1), torch.full_like(best_fit, -float("inf")))
             better = fit > best_fit
             best_piece = torch.where(better, piece, best_piece)
@@ -134,6 +139,12 @@ def lattice_points(levels: int) -> list[tuple[int, int]]:
     coordinates (1 - (i + j) / n, i / n, j / n) on the piece's corners."""
     n = 2 ** levels
     return [(i, j) for i in range(n + 1) for j in range(n + 1 - i)]
+
+
+def lattice_coordinates(levels: int) -> torch.Tensor:
+    """(K, 3) float64 the barycentric coordinates of ``lattice_points(levels)``."""
+    n = 2 ** levels
+    return torch.tensor([[1 - (i + j) / n, i / n, j / n] for i, j in lattice_points(levels)], dtype=torch.float64)
 
 
 def _lattice_index(n: int, device) -> torch.Tensor:
@@ -158,18 +169,6 @@ def _lattice_triangles(n: int) -> torch.Tensor:
             if i + j < n - 1:
                 small.append((index[i + 1, j], index[i + 1, j + 1], index[i, j + 1]))
     return torch.tensor(small, dtype=torch.int64)
-
-
-def _barycentric(corners: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """(S, 3) the barycentric coordinates of ``points`` (S, 3) projected onto the planes of
-    the triangles ``corners`` (S, 3, 3)."""
-    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
-    e1, e2, d = b - a, c - a, points - a
-    d11, d12, d22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
-    p1, p2 = (d * e1).sum(1), (d * e2).sum(1)
-    det = (d11 * d22 - d12 * d12).clamp(min=1e-300)
-    l1, l2 = (d22 * p1 - d12 * p2) / det, (d11 * p2 - d12 * p1) / det
-    return torch.stack([1 - l1 - l2, l1, l2], 1)
 
 
 def gouraud_shading(mesh: Mesh, vertex_values: torch.Tensor) -> Shading:
@@ -225,9 +224,9 @@ def quadratic_shading(mesh: Mesh, element_values: torch.Tensor, vertex_values: t
 
     # inner points, once per piece
     lattice = lattice_points(levels)
-    inner = [(i, j) for i, j in lattice if i > 0 and j > 0 and i + j < n]
-    inner_lam = torch.tensor([[1 - (i + j) / n, i / n, j / n] for i, j in inner], dtype=torch.float64,
-                             device=device).reshape(-1, 3)
+    is_inner = [i > 0 and j > 0 and i + j < n for i, j in lattice]
+    inner = [p for p, keep in zip(lattice, is_inner) if keep]
+    inner_lam = lattice_coordinates(levels)[torch.tensor(is_inner)].to(device)  # (I, 3)
     corners3 = pieces[:, None, :].expand(-1, len(inner), -1)  # (D, I, 3)
     lam3 = inner_lam[None].expand(D, -1, -1)
     inner_points = (lam3[..., None] * vertices[corners3]).sum(-2)  # (D, I, 3)
