@@ -79,8 +79,14 @@ def element_errors(mesh: Mesh, radiosity: torch.Tensor, display: Display) -> tor
     differently. Measured (to a third of the finest uniform mesh's elements, the three
     bundled scenes): relative MSE 0.90-0.98x the Gouraud ranking's with the same shading
     from x2, about the same from x1 on the Cornell box, 1.09x on floating; the estimate
-    reads 0.55-0.94x the measured error, where the Gouraud one read 1.2-1.7x the Gouraud
-    picture's (and 3x on floating's finest shaded one).
+    reads 0.41-1.06x the measured error over the converged accuracy study's 47 runs (the
+    Gouraud one read 1.2-1.7x the Gouraud picture's, and 3x on floating's finest shaded
+    one). What it cannot see is an error the shading and the element's fit share: on the
+    Cornell box, walls and ceiling a few percent bright beside the room's concave edges,
+    where the light falls faster than any quadratic (a seventh of it estimated there). A
+    leave-one-out residual added (each element's mean against its neighbours' quadratic)
+    read 1.1-1.9x but ranked no better (the Cornell box the same, floating 1.04 -> 1.08x,
+    office 0.53 -> 0.58x the finest's relative MSE).
 
     Args:
         mesh: the elements; radiosity: (T, 3) the radiosity shown.
