@@ -296,7 +296,7 @@ class Result:
             paths[kind] = path
         rendered = time.perf_counter()
         export.write_ply(paths["mesh"], self.mesh, vertex, display.to_srgb8(vertex.numpy(), self.exposure()))
-        self.write_glb(paths["glTF"], vertex)
+        self.write_glb(paths["glTF"])
         for kind, (path, (header, rows)) in tables.items():
             export.write_csv(path, header, rows)
             paths[kind] = path
@@ -305,12 +305,13 @@ class Result:
         export.write_stats(paths["stats"], self.stats)
         return paths
 
-    def write_glb(self, path, vertex_radiosity: torch.Tensor | None = None) -> Path:
-        """Write the mesh as binary glTF: COLOR_0 the exposed linear display colour, the linear
-        radiosity as ``_RADIOSITY`` (see ``hemirad.gltf``). ``vertex_radiosity``: (V, 3), to
-        reuse ``vertex_radiosity()`` already computed. Returns the path."""
-        vertex = self.vertex_radiosity() if vertex_radiosity is None else vertex_radiosity
-        gltf.write_glb(path, self.mesh, vertex, gltf.display_color(vertex, self.exposure()))
+    def write_glb(self, path) -> Path:
+        """Write the picture as drawn (``shading()``: its triangles and points) as binary glTF:
+        COLOR_0 the exposed linear display colour, the linear radiosity as ``_RADIOSITY`` (see
+        ``output.gltf``). Returns the path."""
+        shading = self.shading()
+        gltf.write_glb(path, shading.positions, shading.triangles, shading.values,
+                       gltf.display_color(shading.values, self.exposure()))
         return Path(path)
 
 

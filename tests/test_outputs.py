@@ -1,5 +1,6 @@
-"""The files other tools read: the PLY and the binary glTF load back in trimesh with one
-vertex, colour and radiosity per solved vertex; the Python API writes them all."""
+"""The files other tools read: the PLY loads back in trimesh with one vertex, colour and
+radiosity per solved vertex, the binary glTF with the picture as drawn; the Python API
+writes them all."""
 from __future__ import annotations
 
 import dataclasses
@@ -49,20 +50,25 @@ def test_ply_loads_back_with_colours_and_radiosity(written):
     assert np.array_equal(read_ply_radiosity(paths["mesh"]), vertex.astype(np.float32))
 
 
-def test_glb_loads_back_with_colours_and_radiosity(written):
+def test_glb_loads_back_as_the_picture_draws_it(written):
+    """The glTF is the picture as drawn (``Result.shading``), its colours and radiosity at
+    every point, so a viewer elsewhere shows what image.png shows."""
     result, paths = written
-    vertex = result.vertex_radiosity().numpy()
+    shading = result.shading()
+    assert shading.levels > 0 and len(shading.triangles) == 4 ** shading.levels * len(shading.pieces)
     scene = trimesh.load(paths["glTF"], process=False)
     (mesh,) = scene.geometry.values()
-    assert len(mesh.vertices) == len(result.mesh.vertices)
-    assert np.array_equal(mesh.faces, result.mesh.triangles.numpy())
-    assert np.allclose(mesh.vertices, result.mesh.vertices.numpy(), rtol=1e-6, atol=1e-6)
+    assert np.array_equal(mesh.faces, shading.triangles.numpy())
+    assert np.allclose(mesh.vertices, shading.positions.numpy(), rtol=1e-6, atol=1e-6)
     # the unlit material makes trimesh keep COLOR_0 beside it, as a vertex attribute
     color = np.asarray(mesh.visual.vertex_attributes["color"])
-    expected = np.clip(vertex * result.exposure(), 0, 1).astype(np.float32)
+    expected = np.clip(shading.values.numpy() * result.exposure(), 0, 1).astype(np.float32)
     assert np.array_equal(color, expected)
     assert color.max() == 1.0 and len(np.unique(color, axis=0)) > 10  # the lamp saturates; walls vary
-    assert np.array_equal(mesh.vertex_attributes[gltf.RADIOSITY_ATTRIBUTE], vertex.astype(np.float32))
+    assert np.array_equal(mesh.vertex_attributes[gltf.RADIOSITY_ATTRIBUTE], shading.values.numpy().astype(np.float32))
+    # the mesh's own vertices come first, with the values the PLY gives them
+    V = len(result.mesh.vertices)
+    assert np.array_equal(mesh.vertex_attributes[gltf.RADIOSITY_ATTRIBUTE][:V], read_ply_radiosity(paths["mesh"]))
 
 
 def test_glb_container_follows_the_spec(written):
@@ -88,11 +94,11 @@ def test_write_glb_alone(written, tmp_path):
     result, _ = written
     path = result.write_glb(tmp_path / "alone.glb")
     mesh = trimesh.load(path, force="mesh", process=False)
-    assert len(mesh.vertices) == len(result.mesh.vertices)
+    assert len(mesh.vertices) == len(result.shading().positions)
 
 
 def test_glb_refuses_colours_outside_0_1(written):
     result, _ = written
     vertex = result.vertex_radiosity()
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
-        gltf.glb_bytes(result.mesh, vertex, vertex.numpy() * 1e6)
+        gltf.glb_bytes(result.mesh.vertices, result.mesh.triangles, vertex, vertex.numpy() * 1e6)

@@ -1,4 +1,6 @@
-"""Binary glTF 2.0 (``.glb``) of a solved mesh: per-vertex colours and linear radiosity.
+"""Binary glTF 2.0 (``.glb``) of a solved scene's picture: triangles with per-vertex colours
+and linear radiosity (a run writes the picture as drawn, ``output.shading``: each element
+cut as the picture shades it, so a viewer shows what ``image.png`` shows).
 
 One mesh, one primitive, triangles. Vertex attributes:
 
@@ -25,7 +27,6 @@ import struct
 
 import numpy as np
 
-from hemirad.geometry.mesh import Mesh
 from hemirad.output.export import _as_numpy, _write_bytes
 
 RADIOSITY_ATTRIBUTE = "_RADIOSITY"
@@ -41,18 +42,18 @@ def _padded(data: bytes, fill: bytes) -> bytes:
     return data + fill * (-len(data) % 4)
 
 
-def glb_bytes(mesh: Mesh, vertex_radiosity, vertex_color) -> bytes:
+def glb_bytes(vertices, triangles, vertex_radiosity, vertex_color) -> bytes:
     """The ``.glb`` file's content.
 
     Args:
-        mesh: the solved mesh; vertex order and triangles are kept as they are.
+        vertices: (V, 3) positions; triangles: (M, 3) indices into them, kept as they are.
         vertex_radiosity: (V, 3) linear radiosity per vertex.
         vertex_color: (V, 3) linear display colour per vertex, in [0, 1].
     Returns:
         A GLB container: a 12-byte header, a JSON chunk and a binary chunk.
     """
-    positions = np.ascontiguousarray(_as_numpy(mesh.vertices), dtype="<f4").reshape(-1, 3)
-    indices = np.ascontiguousarray(_as_numpy(mesh.triangles), dtype="<u4").reshape(-1, 3)
+    positions = np.ascontiguousarray(_as_numpy(vertices), dtype="<f4").reshape(-1, 3)
+    indices = np.ascontiguousarray(_as_numpy(triangles), dtype="<u4").reshape(-1, 3)
     radiosity = np.ascontiguousarray(_as_numpy(vertex_radiosity), dtype="<f4").reshape(-1, 3)
     color = np.ascontiguousarray(_as_numpy(vertex_color), dtype="<f4").reshape(-1, 3)
     V = len(positions)
@@ -97,9 +98,9 @@ def glb_bytes(mesh: Mesh, vertex_radiosity, vertex_color) -> bytes:
                      struct.pack("<II", len(binary), _CHUNK_BIN), binary])
 
 
-def write_glb(path, mesh: Mesh, vertex_radiosity, vertex_color) -> None:
-    """Write ``glb_bytes(mesh, vertex_radiosity, vertex_color)`` to ``path``."""
-    _write_bytes(path, glb_bytes(mesh, vertex_radiosity, vertex_color))
+def write_glb(path, vertices, triangles, vertex_radiosity, vertex_color) -> None:
+    """Write ``glb_bytes(vertices, triangles, vertex_radiosity, vertex_color)`` to ``path``."""
+    _write_bytes(path, glb_bytes(vertices, triangles, vertex_radiosity, vertex_color))
 
 
 def display_color(vertex_radiosity, exposure: float) -> np.ndarray:
