@@ -94,6 +94,7 @@ def fingerprint(scene: Scene) -> dict[str, object]:
         "solver.resolution": scene.solver.resolution,
         "solver.reflector_resolution": resolved_reflector_resolution(scene.solver),
         "meshing.contacts": scene.meshes_contacts,
+        "meshing.creases": scene.meshes_creases,
         "meshing.intersections": scene.meshing.intersections,
         **{f"solver.{k}": getattr(scene.solver, k)
            for k in ("patch_size", "overshoot", "sweeps", "shooter_split", "small_receivers")},

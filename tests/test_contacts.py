@@ -480,6 +480,7 @@ def test_contacts_are_meshed_by_default_where_patches_shoot():
     default = build_mesh(scene)
     assert checkpoints.fingerprint(scene)["meshing.contacts"] is True
     scene.refine.pattern, scene.refine.criterion = "pattern2", "answer"
+    scene.meshing.creases = False  # on with the answer (test_creases)
     assert_same_mesh(default, build_mesh(scene))
     scene.meshing.contacts = True
     assert_same_mesh(default, build_mesh(scene))

@@ -38,7 +38,7 @@ QUALITY_ROUNDS = 12
 
 def triangulate(region: BaseGeometry, lines: list[np.ndarray], interior: np.ndarray, element_size: float,
                 tolerance: float, quality_rounds: int = QUALITY_ROUNDS,
-                min_angle: float = MIN_ANGLE) -> tuple[np.ndarray, np.ndarray]:
+                min_angle: float = MIN_ANGLE, thin: BaseGeometry | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Mesh ``region`` with triangles of about ``element_size``, its outline and ``lines``
     ((2, 2) segments inside it) as element edges.
 
@@ -57,6 +57,8 @@ def triangulate(region: BaseGeometry, lines: list[np.ndarray], interior: np.ndar
             place keeps its edges as its neighbours see them).
         min_angle: the angle (degrees) under which a triangle gets a circumcentre; a
             surface whose own grid is thinner (a narrow quad) asks no better of its cuts.
+        thin: where triangles are meant to be thin (strips along creases, bounded by
+            ``lines``): those inside it get no circumcentre.
 
     Returns:
         points: (N, 2) float64.
@@ -74,7 +76,7 @@ def triangulate(region: BaseGeometry, lines: list[np.ndarray], interior: np.ndar
     steiner = _steiner_points(region, points, segments, np.asarray(interior, dtype=np.float64).reshape(-1, 2),
                               CLEARANCE * element_size)
     points, tris = _conforming_delaunay(np.concatenate([points, steiner]), segments, region, quality_rounds,
-                                        min_angle)
+                                        min_angle, thin)
     corners = points[tris]
     signed = _signed_areas(corners)
     tris = np.where((signed < 0)[:, None], tris[:, [0, 2, 1]], tris)
@@ -99,7 +101,8 @@ def _steiner_points(region: BaseGeometry, points: np.ndarray, segments: np.ndarr
 
 
 def _conforming_delaunay(points: np.ndarray, segments: np.ndarray, region: BaseGeometry,
-                         quality_limit: int, min_angle: float) -> tuple[np.ndarray, np.ndarray]:
+                         quality_limit: int, min_angle: float,
+                         thin: BaseGeometry | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The Delaunay triangulation of (N, 2) ``points`` with every segment (S, 2) a union of
     its edges, refined where a triangle in ``region`` has an angle under ``min_angle``.
 
@@ -107,7 +110,8 @@ def _conforming_delaunay(points: np.ndarray, segments: np.ndarray, region: BaseG
     point at its circumcentre (Ruppert 1995), unless that point falls within a segment's
     diametral circle: then the segment is split instead, so no point lands beside a
     segment. At most ``quality_limit`` rounds of that: a corner of the input sharper than
-    ``min_angle`` cannot be mended and is left as it is.
+    ``min_angle`` cannot be mended and is left as it is. Triangles inside ``thin`` are
+    left thin.
 
     Returns:
         points: (N', 2) the points, those added appended.
@@ -126,7 +130,10 @@ def _conforming_delaunay(points: np.ndarray, segments: np.ndarray, region: BaseG
             if quality_rounds == quality_limit:
                 return points, tris
             corners = points[tris]
-            inside = shapely.contains_xy(region, *corners.mean(axis=1).T)
+            centroids = corners.mean(axis=1).T
+            inside = shapely.contains_xy(region, *centroids)
+            if thin is not None:
+                inside &= ~shapely.contains_xy(thin, *centroids)
             bad = inside & (min_angles(corners) < min_angle) & (np.abs(_signed_areas(corners)) > 0)
             if not bad.any():
                 return points, tris

@@ -18,12 +18,13 @@ order of the objects.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from hemirad.core.fastops import cross3
 from hemirad.geometry.conforming import triangulate
+from hemirad.geometry.creases import CREASE_STRIP, crease_strips
 from hemirad.geometry.footprints import PlaneFrame, contacts, inner_lines, planar_frame, surface_region
 
 #: Points within this fraction of the scene's size of a plane touch it. The bundled scenes'
@@ -39,12 +40,14 @@ HOVER_GAP = 2e-3
 
 @dataclass(frozen=True)
 class SurfaceGeometry:
-    """One surface as first meshed: (V, 3) float64 ``vertices``, (T, 3) int64 ``triangles``
-    and the ``element_size`` it was meshed at."""
+    """One surface as first meshed: (V, 3) float64 ``vertices``, (T, 3) int64 ``triangles``,
+    the ``element_size`` it was meshed at and the (C, 2, 3) ``creases`` its mesh is graded
+    toward (``hemirad.geometry.creases``), which a new mesh keeps."""
 
     vertices: np.ndarray
     triangles: np.ndarray
     element_size: float
+    creases: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
 
 
 def conform_to_contacts(surfaces: list[SurfaceGeometry]) -> list[tuple[np.ndarray, np.ndarray] | None]:
@@ -56,7 +59,7 @@ def conform_to_contacts(surfaces: list[SurfaceGeometry]) -> list[tuple[np.ndarra
     size = float(np.ptp(everything, axis=0).max())
     tolerance, gap = CONTACT_TOLERANCE * size, HOVER_GAP * size
     corners = [s.vertices[s.triangles] for s in surfaces]
-    normals = [_unit_normals(c) for c in corners]
+    normals = [unit_normals(c) for c in corners]
     low = np.stack([s.vertices.min(axis=0) for s in surfaces])
     high = np.stack([s.vertices.max(axis=0) for s in surfaces])
     out = []
@@ -89,12 +92,16 @@ def _remesh(surface: SurfaceGeometry, frame: PlaneFrame, found, tolerance: float
     lines = inner_lines(found.segments, remaining, tolerance)
     if remaining is region and not lines:
         return None
+    strips = None
+    if len(surface.creases):  # the grid's strips along concave creases, kept as element edges
+        strips, edges = crease_strips(frame.to_plane(surface.creases), region, CREASE_STRIP * surface.element_size)
+        lines = inner_lines(np.concatenate([found.segments, edges]), remaining, tolerance)
     grid = frame.to_plane(surface.vertices)  # the Steiner points away from the contacts
-    points, triangles = triangulate(remaining, lines, grid, surface.element_size, tolerance)
+    points, triangles = triangulate(remaining, lines, grid, surface.element_size, tolerance, thin=strips)
     return frame.lift(points), triangles
 
 
-def _unit_normals(corners: np.ndarray) -> np.ndarray:
+def unit_normals(corners: np.ndarray) -> np.ndarray:
     cross = cross3(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     return cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)
 

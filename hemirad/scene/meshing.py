@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from fractions import Fraction
 from pathlib import Path
 
@@ -21,8 +21,9 @@ import numpy as np
 import torch
 
 from hemirad.core.errors import HemiradInputError, HemiradWarning
+from hemirad.geometry.creases import CREASE_STRIP, crease_sides
 from hemirad.geometry.mesh import Mesh
-from hemirad.scene.contacts import SurfaceGeometry, conform_to_contacts
+from hemirad.scene.contacts import CONTACT_TOLERANCE, SurfaceGeometry, conform_to_contacts, unit_normals
 from hemirad.scene.intersections import cut_at_intersections
 from hemirad.scene.meshfile import MeshContents, MeshFileUnreadable, clean_triangles, contents_of
 from hemirad.scene.model import Box, MeshFile, Quad, Room, Scene
@@ -41,6 +42,10 @@ class _Surface:
     # its outline triangles, as described (a quad's two, a mesh patch's own before
     # subdivision): (V, 3) float64 and (T, 3) int64; closed solids are found from them
     shell: tuple[np.ndarray, np.ndarray]
+    # the (4, 3) corners of the quad it is the grid of (None once remeshed or cut)
+    quad: torch.Tensor | None = None
+    # (C, 2, 3) the sides of that quad its grid is graded toward (concave creases)
+    creases: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
 
 
 # ----------------------------------------------------------------------------------------
@@ -68,7 +73,17 @@ def quad_triangles(corners, element_size: float) -> int:
     return 2 * nu * nv
 
 
-def grid_quad(corners: torch.Tensor, element_size: float) -> tuple[torch.Tensor, torch.Tensor]:
+def _grid_lines(cells: int, graded_low: bool, graded_high: bool) -> torch.Tensor:
+    """(cells + 1 + graded sides,) the grid's parameters along one axis: equal cells, and in
+    the first and last cell a line ``CREASE_STRIP`` of a cell from a graded side."""
+    lines = torch.linspace(0.0, 1.0, cells + 1, dtype=torch.float64)
+    strip = CREASE_STRIP / cells
+    extra = ([strip] if graded_low else []) + ([1.0 - strip] if graded_high else [])
+    return torch.sort(torch.cat([lines, torch.tensor(extra, dtype=torch.float64)])).values
+
+
+def grid_quad(corners: torch.Tensor, element_size: float,
+              graded: tuple[bool, bool, bool, bool] = (False, False, False, False)) -> tuple[torch.Tensor, torch.Tensor]:
     """Lay a near-square grid over a quad and split each cell into two triangles.
 
     The quad is interpolated bilinearly between its corners, so a slightly non-planar
@@ -80,9 +95,13 @@ def grid_quad(corners: torch.Tensor, element_size: float) -> tuple[torch.Tensor,
             by the right-hand rule over corners 0, 1, 2.
         element_size: target cell side; edge 01 (and 32) get ``ceil(length / size)`` cells,
             likewise edge 03 (and 12).
+        graded: per side (01, 12, 23, 30), whether the cells along it are split
+            ``CREASE_STRIP`` of a cell from it, a strip of thin elements along a concave
+            crease (``hemirad.geometry.creases``).
 
     Returns:
-        vertices: ((nu + 1) * (nv + 1), 3) float64, row-major over (v, u).
+        vertices: ((nu + 1) * (nv + 1), 3) float64, row-major over (v, u) (nu and nv
+            counting the strips' cells).
         triangles: (2 * nu * nv, 3) int64, wound like the quad.
     """
     if not element_size > 0:
@@ -90,8 +109,9 @@ def grid_quad(corners: torch.Tensor, element_size: float) -> tuple[torch.Tensor,
     c = torch.as_tensor(corners, dtype=torch.float64).reshape(4, 3)
     nu, nv = _quad_cells(c, element_size)
 
-    u = torch.linspace(0.0, 1.0, nu + 1, dtype=torch.float64)
-    v = torch.linspace(0.0, 1.0, nv + 1, dtype=torch.float64)
+    u = _grid_lines(nu, graded[3], graded[1])
+    v = _grid_lines(nv, graded[0], graded[2])
+    nu, nv = len(u) - 1, len(v) - 1
     vv, uu = torch.meshgrid(v, u, indexing="ij")  # (nv + 1, nu + 1)
     uu, vv = uu[..., None], vv[..., None]
     grid = (1 - uu) * (1 - vv) * c[0] + uu * (1 - vv) * c[1] + uu * vv * c[2] + (1 - uu) * vv * c[3]
@@ -153,7 +173,8 @@ def _room_surfaces(room: Room, label: str, scene: Scene) -> list[_Surface]:
         size = (override.element_size if override and override.element_size else None) or room.element_size
         corners = box_face_corners(room.min, room.max, face, inward=True)
         v, t = grid_quad(corners, size)
-        out.append(_Surface(f"{label}.{face}", v, t, scene.material_index(material), size, _quad_shell(corners)))
+        out.append(_Surface(f"{label}.{face}", v, t, scene.material_index(material), size, _quad_shell(corners),
+                            corners))
     return out
 
 
@@ -163,14 +184,15 @@ def _box_surfaces(box: Box, label: str, scene: Scene) -> list[_Surface]:
         corners = box_face_corners(box.min, box.max, face, inward=False)
         v, t = grid_quad(corners, box.element_size)
         out.append(_Surface(f"{label}.{_BOX_FACE_NAMES[face]}", v, t, scene.material_index(box.material),
-                            box.element_size, _quad_shell(corners)))
+                            box.element_size, _quad_shell(corners), corners))
     return out
 
 
 def _quad_surfaces(quad: Quad, label: str, scene: Scene) -> list[_Surface]:
     corners = torch.tensor(quad.corners, dtype=torch.float64)
     v, t = grid_quad(corners, quad.element_size)
-    return [_Surface(label, v, t, scene.material_index(quad.material), quad.element_size, _quad_shell(corners))]
+    return [_Surface(label, v, t, scene.material_index(quad.material), quad.element_size, _quad_shell(corners),
+                     corners)]
 
 
 # ----------------------------------------------------------------------------------------
@@ -314,7 +336,38 @@ def _remeshed(surfaces: list[_Surface], meshes: list[tuple[np.ndarray, np.ndarra
 
 
 def _geometry(surfaces: list[_Surface]) -> list[SurfaceGeometry]:
-    return [SurfaceGeometry(s.vertices.numpy(), s.triangles.numpy(), s.element_size) for s in surfaces]
+    return [SurfaceGeometry(s.vertices.numpy(), s.triangles.numpy(), s.element_size, s.creases) for s in surfaces]
+
+
+def _grade_creases(surfaces: list[_Surface]) -> list[_Surface]:
+    """The grids of quads with a strip of thin elements along each side that is a concave
+    crease (``hemirad.geometry.creases``)."""
+    if not surfaces:
+        return surfaces
+    corners = [s.vertices.numpy()[s.triangles.numpy()] for s in surfaces]
+    everything = np.concatenate([c.reshape(-1, 3) for c in corners])
+    tolerance = CONTACT_TOLERANCE * float(np.ptp(everything, axis=0).max())
+    normals = [unit_normals(c) for c in corners]
+    low = np.stack([c.reshape(-1, 3).min(axis=0) for c in corners])
+    high = np.stack([c.reshape(-1, 3).max(axis=0) for c in corners])
+    out = []
+    for i, surface in enumerate(surfaces):
+        if surface.quad is None:
+            out.append(surface)
+            continue
+        near = [j for j in np.flatnonzero(((low <= high[i] + tolerance) & (high >= low[i] - tolerance)).all(axis=1))
+                if j != i]
+        quad = surface.quad.numpy()
+        sides = crease_sides(quad, np.concatenate([corners[j] for j in near]).reshape(-1, 3, 3),
+                             np.concatenate([normals[j] for j in near]).reshape(-1, 3), tolerance) \
+            if near else np.zeros(4, dtype=bool)
+        if not sides.any():
+            out.append(surface)
+            continue
+        v, t = grid_quad(surface.quad, surface.element_size, tuple(bool(x) for x in sides))
+        creases = np.stack([quad[np.flatnonzero(sides)], quad[(np.flatnonzero(sides) + 1) % 4]], axis=1)
+        out.append(replace(surface, vertices=v, triangles=t, creases=creases))
+    return out
 
 
 def _conform_to_contacts(surfaces: list[_Surface]) -> list[_Surface]:
@@ -337,7 +390,10 @@ def build_mesh(scene: Scene) -> Mesh:
 
     With ``scene.meshing.intersections`` (on by default), surfaces are cut where others pass
     through them and what lies inside a closed solid is left out
-    (``hemirad.scene.intersections``). Then, with ``scene.meshing.contacts`` (by default
+    (``hemirad.scene.intersections``). With ``scene.meshing.creases`` (by default with
+    refinement judged on the answer), a quad's grid gets a strip of thin elements along each
+    side where another surface stands facing it (``hemirad.geometry.creases``). Then, with
+    ``scene.meshing.contacts`` (by default
     with refinement judged on the answer), a planar surface that others touch is meshed
     conforming to where they touch, what they cover left out (``hemirad.scene.contacts``); a surface they cover whole is
     left out altogether.
@@ -348,6 +404,8 @@ def build_mesh(scene: Scene) -> Mesh:
         surfaces.extend(builders[type(obj)](obj, label, scene))
     if scene.meshing.intersections:
         surfaces = _cut_at_intersections(surfaces)
+    if scene.meshes_creases:
+        surfaces = _grade_creases(surfaces)
     if scene.meshes_contacts:
         surfaces = _conform_to_contacts(surfaces)
 

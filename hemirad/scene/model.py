@@ -328,6 +328,11 @@ class MeshingOptions:
     # by default: it changes no surface of a scene where nothing cuts through anything
     # (the bundled scenes, the paper's figures), and costs little where nothing does.
     intersections: bool = True
+    # Grade quads' grids toward the sides where another surface stands facing them (a wall
+    # on a floor): a strip of elements a quarter wide along every concave crease
+    # (``hemirad.geometry.creases``). ``auto``: with refinement judged on the answer, whose
+    # rounds refine elements whole and would spend a crease's whole length of them there.
+    creases: bool | str = "auto"
 
 
 @dataclass
@@ -398,6 +403,13 @@ class Scene:
         size; refinement resolves it."""
         contacts = self.meshing.contacts
         return (self.solver.shoots_patches or self.refines_by_answer) if contacts == "auto" else bool(contacts)
+
+    @property
+    def meshes_creases(self) -> bool:
+        """``meshing.creases`` made definite: ``auto`` is on with refinement judged on the
+        answer (README, Concave creases)."""
+        creases = self.meshing.creases
+        return self.refines_by_answer if creases == "auto" else bool(creases)
 
     def with_element_sizes_scaled(self, factor: float) -> "Scene":
         """A copy of the scene with every element size (room faces' too) times ``factor``."""

@@ -21,7 +21,7 @@ _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "reflector_resolution", "ambient", "device",
                 "patch_size", "overshoot", "sweeps", "shooter_split", "emitter_eyes", "cache_mb", "small_receivers",
                 "error_samples", "picture_error_samples", "reconstruction")
-_MESHING_KEYS = ("contacts", "intersections")
+_MESHING_KEYS = ("contacts", "creases", "intersections")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
                 "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds", "round_growth")
 
@@ -114,11 +114,11 @@ def _hemicube_resolution(check: Checker, value, key: str, expected: str) -> int:
 def read_meshing(check: Checker, v) -> MeshingOptions:
     m = check.section(v, "meshing", "a mapping of meshing options", _MESHING_KEYS)
     opts = MeshingOptions()
-    if "contacts" in m:
-        contacts = m["contacts"]
-        if contacts != "auto" and not isinstance(contacts, bool):
-            check.fail("meshing.contacts", "true, false or auto", contacts)
-        opts.contacts = contacts
+    for key in ("contacts", "creases"):
+        if key in m:
+            if m[key] != "auto" and not isinstance(m[key], bool):
+                check.fail(f"meshing.{key}", "true, false or auto", m[key])
+            setattr(opts, key, m[key])
     if "intersections" in m:
         opts.intersections = check.boolean(m["intersections"], "meshing.intersections")
     return opts
