@@ -110,6 +110,21 @@ def test_the_cornell_box_answer_grades_its_room_and_blocks_but_not_the_lamp_or_t
         assert torch.equal(*[m.corners[m.surface == i] for m, i in zip((graded, plain), s)]), name
 
 
+def test_office_answer_grades_its_room_but_not_short_sides():
+    """Sides a single cell long (a desk leg's foot, 5 cm) get no strip; the room's do."""
+    scene = hemirad.load_scene("office")
+    scene.refine.pattern = "pattern2"
+    graded = build_mesh(scene)
+    scene.meshing.creases = False
+    plain = build_mesh(scene)
+    def surface(mesh, name):
+        return mesh.corners[mesh.surface == mesh.surface_names.index(name)]
+    for name in ("room.floor", "room.ceiling", "room.x_min", "pc.tower.x_max"):
+        assert len(surface(graded, name)) > len(surface(plain, name)), name
+    for name in ("desk.leg1.x_min", "desk.leg4.z_max", "chair.leg2.x_max"):
+        assert torch.equal(surface(graded, name), surface(plain, name)), name
+
+
 def crease_room(creases: bool) -> Scene:
     """A 2 m cube of 0.5 m elements (reflectance 0.7) lit by a 0.6 m lamp 5 mm under its ceiling."""
     materials = [Material("wall", (0.7,) * 3), Material("lamp", (0.0,) * 3, (30.0,) * 3)]

@@ -339,9 +339,16 @@ def _geometry(surfaces: list[_Surface]) -> list[SurfaceGeometry]:
     return [SurfaceGeometry(s.vertices.numpy(), s.triangles.numpy(), s.element_size, s.creases) for s in surfaces]
 
 
+#: Only sides at least this many cells long get a strip: along a short side (a desk leg's
+#: foot, one cell) it cost patches and gained nothing (office, the answer from twice its
+#: shipped elements to a third of the finest uniform mesh's: relMSE 0.0000431 in 5.2 s
+#: against 0.0000445 in 5.6-5.8 s with every crease graded).
+CREASE_CELLS = 2
+
+
 def _grade_creases(surfaces: list[_Surface]) -> list[_Surface]:
-    """The grids of quads with a strip of thin elements along each side that is a concave
-    crease (``hemirad.geometry.creases``)."""
+    """The grids of quads with a strip of thin elements along each side at least
+    ``CREASE_CELLS`` long that is a concave crease (``hemirad.geometry.creases``)."""
     if not surfaces:
         return surfaces
     corners = [s.vertices.numpy()[s.triangles.numpy()] for s in surfaces]
@@ -361,6 +368,8 @@ def _grade_creases(surfaces: list[_Surface]) -> list[_Surface]:
         sides = crease_sides(quad, np.concatenate([corners[j] for j in near]).reshape(-1, 3, 3),
                              np.concatenate([normals[j] for j in near]).reshape(-1, 3), tolerance) \
             if near else np.zeros(4, dtype=bool)
+        nu, nv = _quad_cells(surface.quad, surface.element_size)
+        sides &= np.array([nu, nv, nu, nv]) >= CREASE_CELLS
         if not sides.any():
             out.append(surface)
             continue
