@@ -310,19 +310,20 @@ def test_no_dark_halo_on_the_ceiling_beside_a_hung_lamp():
     assert errors[False][:3].max() < -0.2, errors[False]  # the control: the halo
 
 
-def test_the_scene_key():
+@pytest.mark.parametrize("key", ["contacts", "creases"])  # creases: tests/test_creases.py
+def test_the_scene_key(key):
     base = {"materials": {"lamp": {"reflectance": 0.0, "emission": 1.0}},
             "objects": [{"type": "quad", "material": "lamp", "element_size": 1.0,
                          "corners": [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]}],
             "camera": {"position": [0, 0, 3], "look_at": [0, 0, 0]}}
-    assert parse_scene(base).meshing.contacts == "auto"
-    assert parse_scene({**base, "meshing": {"contacts": "auto"}}).meshing.contacts == "auto"
-    assert parse_scene({**base, "meshing": {"contacts": True}}).meshing.contacts is True
-    assert parse_scene({**base, "meshing": {"contacts": False}}).meshing.contacts is False
-    with pytest.raises(SceneError, match=r"meshing\.contacts"):
-        parse_scene({**base, "meshing": {"contacts": "yes please"}})
-    with pytest.raises(SceneError, match="contacts"):
-        parse_scene({**base, "meshing": {"contact": True}})
+    assert getattr(parse_scene(base).meshing, key) == "auto"
+    assert getattr(parse_scene({**base, "meshing": {key: "auto"}}).meshing, key) == "auto"
+    assert getattr(parse_scene({**base, "meshing": {key: True}}).meshing, key) is True
+    assert getattr(parse_scene({**base, "meshing": {key: False}}).meshing, key) is False
+    with pytest.raises(SceneError, match=rf"meshing\.{key}"):
+        parse_scene({**base, "meshing": {key: "yes please"}})
+    with pytest.raises(SceneError, match=key):
+        parse_scene({**base, "meshing": {key[:-1]: True}})
 
 
 def test_patches_and_refinement_on_a_conforming_floor():

@@ -8,12 +8,10 @@ import pytest
 import torch
 
 import hemirad
-from hemirad.core.errors import SceneError
 from hemirad.evaluation.surface_points import elements_at
 from hemirad.geometry.creases import CREASE_STRIP, crease_sides
 from hemirad.geometry.mesh import barycentric
 from hemirad.lighting.sensors import final_gather
-from hemirad.scene.loader import parse_scene
 from hemirad.scene.meshing import box_face_corners, build_mesh, grid_quad
 from hemirad.scene.model import Camera, Material, Quad, Room, Scene
 
@@ -159,14 +157,3 @@ def test_the_picture_beside_a_crease_follows_the_light_into_it():
     assert (worst[True] < 0.6 * worst[False]).all(), worst
     assert worst[False][0] > 0.1, worst  # the control: what the strips mend
 
-
-def test_the_scene_key():
-    base = {"materials": {"lamp": {"reflectance": 0.0, "emission": 1.0}},
-            "objects": [{"type": "quad", "material": "lamp", "element_size": 1.0,
-                         "corners": [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]}],
-            "camera": {"position": [0, 0, 3], "look_at": [0, 0, 0]}}
-    assert parse_scene(base).meshing.creases == "auto"
-    assert parse_scene({**base, "meshing": {"creases": True}}).meshing.creases is True
-    assert parse_scene({**base, "meshing": {"creases": False}}).meshing.creases is False
-    with pytest.raises(SceneError, match=r"meshing\.creases"):
-        parse_scene({**base, "meshing": {"creases": "sometimes"}})

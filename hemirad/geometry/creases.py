@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import numpy as np
 import shapely
+import torch
 from shapely.geometry.base import BaseGeometry
 
 from hemirad.core.fastops import cross3
+from hemirad.geometry.mesh import barycentric
 
 #: The width of the strip of elements along a concave crease, in elements: measured on the
 #: bundled scenes' answers (README, Concave creases).
@@ -62,21 +64,18 @@ def crease_sides(corners: np.ndarray, triangles: np.ndarray, normals: np.ndarray
 def _holds(triangles: np.ndarray, points: np.ndarray, tolerance: float) -> np.ndarray:
     """(K, P) whether each triangle (K, 3, 3) holds each point (P, 3): within ``tolerance``
     of its plane and of its outline or inside."""
-    a, e1, e2 = triangles[:, 0], triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
+    K, P = len(triangles), len(points)
+    e1, e2 = triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
     normal = cross3(e1, e2)
     area2 = np.linalg.norm(normal, axis=1)
     ok = area2 > 0
     normal = normal / np.maximum(area2, 1e-300)[:, None]
-    offset = points[None] - a[:, None]  # (K, P, 3)
-    height = np.abs(np.einsum("kpc,kc->kp", offset, normal))
-    # barycentric coordinates by the Gram matrix of the two edges
-    d11, d12, d22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
-    q1, q2 = np.einsum("kpc,kc->kp", offset, e1), np.einsum("kpc,kc->kp", offset, e2)
-    det = np.maximum(d11 * d22 - d12 * d12, 1e-300)[:, None]
-    u = (d22[:, None] * q1 - d12[:, None] * q2) / det
-    v = (d11[:, None] * q2 - d12[:, None] * q1) / det
-    slack = tolerance / np.sqrt(np.maximum(np.minimum(d11, d22), 1e-300))[:, None]  # tolerance in barycentric units
-    return ok[:, None] & (height <= tolerance) & (u >= -slack) & (v >= -slack) & (u + v <= 1 + slack)
+    height = np.abs(np.einsum("kpc,kc->kp", points[None] - triangles[:, None, 0], normal))
+    lam = barycentric(torch.from_numpy(np.repeat(triangles, P, axis=0)),
+                      torch.from_numpy(np.tile(points, (K, 1)))).numpy().reshape(K, P, 3)
+    # the tolerance in barycentric units, by the shorter of the two edges
+    slack = tolerance / np.sqrt(np.maximum(np.minimum((e1 * e1).sum(1), (e2 * e2).sum(1)), 1e-300))[:, None, None]
+    return ok[:, None] & (height <= tolerance) & (lam >= -slack).all(axis=2)
 
 
 def crease_strips(creases: np.ndarray, region: BaseGeometry, width: float) -> tuple[BaseGeometry, np.ndarray]:

@@ -50,13 +50,31 @@ class SurfaceGeometry:
     creases: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
 
 
+def scene_size(surfaces: list[SurfaceGeometry]) -> float:
+    """The largest side of the bounding box of all the ``surfaces``' vertices: what
+    ``CONTACT_TOLERANCE`` and ``HOVER_GAP`` are fractions of."""
+    return float(np.ptp(np.concatenate([s.vertices for s in surfaces]), axis=0).max())
+
+
+def bounding_boxes(corners: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(S, 3) lows and highs of each surface's triangles (K, 3, 3) in ``corners``."""
+    return (np.stack([c.reshape(-1, 3).min(axis=0) for c in corners]),
+            np.stack([c.reshape(-1, 3).max(axis=0) for c in corners]))
+
+
+def overlapping(low: np.ndarray, high: np.ndarray, own: int, margin: float) -> np.ndarray:
+    """(S,) bool: the boxes (S, 3) ``low``/``high`` within ``margin`` of box ``own``'s, itself left out."""
+    near = ((low <= high[own] + margin) & (high >= low[own] - margin)).all(axis=1)
+    near[own] = False
+    return near
+
+
 def conform_to_contacts(surfaces: list[SurfaceGeometry]) -> list[tuple[np.ndarray, np.ndarray] | None]:
     """For each surface, its new (vertices (V', 3), triangles (T', 3)) where others touch it
     (T' may be 0: all of it is covered), or None where its mesh stays as it is."""
     if not surfaces:
         return []
-    everything = np.concatenate([s.vertices for s in surfaces])
-    size = float(np.ptp(everything, axis=0).max())
+    size = scene_size(surfaces)
     tolerance, gap = CONTACT_TOLERANCE * size, HOVER_GAP * size
     corners = [s.vertices[s.triangles] for s in surfaces]
     normals = [unit_normals(c) for c in corners]

@@ -34,7 +34,7 @@ from hemirad.geometry.crossings import crossing_segments
 from hemirad.geometry.footprints import PlaneFrame, inner_lines, planar_frame, surface_region
 from hemirad.geometry.patches import plane_axes
 from hemirad.geometry.solids import Solid, closed_solids
-from hemirad.scene.contacts import CONTACT_TOLERANCE, SurfaceGeometry
+from hemirad.scene.contacts import CONTACT_TOLERANCE, SurfaceGeometry, bounding_boxes, overlapping, scene_size
 
 Meshed = tuple[np.ndarray, np.ndarray]
 
@@ -47,16 +47,13 @@ def cut_at_intersections(surfaces: list[SurfaceGeometry], shells: list[Meshed]) 
     closed solids are found."""
     if not surfaces:
         return []
-    everything = np.concatenate([s.vertices for s in surfaces])
-    tolerance = CONTACT_TOLERANCE * float(np.ptp(everything, axis=0).max())
+    tolerance = CONTACT_TOLERANCE * scene_size(surfaces)
     solids = closed_solids(shells, tolerance)
     corners = [s.vertices[s.triangles] for s in surfaces]
-    low = np.stack([c.reshape(-1, 3).min(axis=0) for c in corners])
-    high = np.stack([c.reshape(-1, 3).max(axis=0) for c in corners])
+    low, high = bounding_boxes(corners)
     out = []
     for i, surface in enumerate(surfaces):
-        overlap = ((low <= high[i] + tolerance) & (high >= low[i] - tolerance)).all(axis=1)
-        overlap[i] = False
+        overlap = overlapping(low, high, i, tolerance)
         cutting = _near_box(np.concatenate([corners[j] for j in np.flatnonzero(overlap)] or [np.zeros((0, 3, 3))]),
                             low[i], high[i], tolerance)
         around = [s for s in solids if i not in s.members

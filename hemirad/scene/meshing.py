@@ -23,7 +23,8 @@ import torch
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.creases import CREASE_STRIP, crease_sides
 from hemirad.geometry.mesh import Mesh
-from hemirad.scene.contacts import CONTACT_TOLERANCE, SurfaceGeometry, conform_to_contacts, unit_normals
+from hemirad.scene.contacts import (CONTACT_TOLERANCE, SurfaceGeometry, bounding_boxes, conform_to_contacts,
+                                    overlapping, scene_size, unit_normals)
 from hemirad.scene.intersections import cut_at_intersections
 from hemirad.scene.meshfile import MeshContents, MeshFileUnreadable, clean_triangles, contents_of
 from hemirad.scene.model import Box, MeshFile, Quad, Room, Scene
@@ -351,23 +352,21 @@ def _grade_creases(surfaces: list[_Surface]) -> list[_Surface]:
     ``CREASE_CELLS`` long that is a concave crease (``hemirad.geometry.creases``)."""
     if not surfaces:
         return surfaces
-    corners = [s.vertices.numpy()[s.triangles.numpy()] for s in surfaces]
-    everything = np.concatenate([c.reshape(-1, 3) for c in corners])
-    tolerance = CONTACT_TOLERANCE * float(np.ptp(everything, axis=0).max())
+    geometry = _geometry(surfaces)
+    tolerance = CONTACT_TOLERANCE * scene_size(geometry)
+    corners = [g.vertices[g.triangles] for g in geometry]
     normals = [unit_normals(c) for c in corners]
-    low = np.stack([c.reshape(-1, 3).min(axis=0) for c in corners])
-    high = np.stack([c.reshape(-1, 3).max(axis=0) for c in corners])
+    low, high = bounding_boxes(corners)
     out = []
     for i, surface in enumerate(surfaces):
         if surface.quad is None:
             out.append(surface)
             continue
-        near = [j for j in np.flatnonzero(((low <= high[i] + tolerance) & (high >= low[i] - tolerance)).all(axis=1))
-                if j != i]
+        near = np.flatnonzero(overlapping(low, high, i, tolerance))
         quad = surface.quad.numpy()
         sides = crease_sides(quad, np.concatenate([corners[j] for j in near]).reshape(-1, 3, 3),
                              np.concatenate([normals[j] for j in near]).reshape(-1, 3), tolerance) \
-            if near else np.zeros(4, dtype=bool)
+            if len(near) else np.zeros(4, dtype=bool)
         nu, nv = _quad_cells(surface.quad, surface.element_size)
         sides &= np.array([nu, nv, nu, nv]) >= CREASE_CELLS
         if not sides.any():
