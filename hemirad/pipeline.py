@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from hemirad import checkpoint as checkpoints
-from hemirad.adaptive.answer import Display, RoundReport, estimated_relative_error, refine_by_answer
+from hemirad.adaptive.answer import Display, RoundReport, element_errors, estimated_relative_error, refine_by_answer
 from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver, refined_patches
 from hemirad.core.atomic import remove_stale_temporaries
@@ -116,7 +116,7 @@ class Result:
         scene's ``solver.error_samples`` points (``evaluation.gathered_error``); None for 0."""
         o = self.scene.solver
         return gathered_error(self.mesh, self.display_radiosity, self.emission, self.reflectance,
-                              o.error_samples, o.resolution, shading=self.shading())
+                              o.error_samples, o.resolution, shading=self.shading(), guide=self.error_guide())
 
     def estimate_image_error(self, camera: Camera | None = None, samples: int | None = None,
                              mask=None) -> GatheredError | None:
@@ -128,7 +128,13 @@ class Result:
         return image_gathered_error(self.mesh, self.display_radiosity, self.emission, self.reflectance,
                                     self.scene.camera if camera is None else camera,
                                     o.error_samples if samples is None else samples, o.resolution, mask=mask,
-                                    shading=self.shading())
+                                    shading=self.shading(), guide=self.error_guide())
+
+    def error_guide(self) -> torch.Tensor:
+        """(T,) each element's interpolation estimate (``adaptive.answer.element_errors`` of
+        the picture as drawn), which the final-gather estimates sample by
+        (``evaluation.gathered_error``, ``GUIDE_SHARE``)."""
+        return element_errors(self.mesh, self.display_radiosity, _picture(self.scene))
 
     @property
     def ambient(self) -> torch.Tensor:
