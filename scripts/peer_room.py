@@ -2,7 +2,8 @@
 and error of a converged solve. For reading, never for asserting.
 
     python scripts/peer_room.py ROOM_DIR [--scene scene.yaml] [--points POINTS.npz]
-        [--unshot-fraction 1e-3] [--patch-size auto] [--resolution N] [--rounds N] [--profile]
+        [--unshot-fraction 1e-3] [--patch-size auto] [--resolution N] [--rounds N]
+        [--round-growth G] [--profile]
 
 ROOM_DIR holds a scene in hemirad's format and an ``.npz`` of surface points (``points``,
 ``normals`` (N, 3), path-traced radiosity ``B`` (N, 3) and its standard error ``se``), such as
@@ -43,6 +44,8 @@ def measure(scene_path: Path, points_path: Path, args) -> dict:
         options.resolution = args.resolution
     if args.rounds:  # refinement judged on the answer (the default criterion with patches)
         scene.refine.pattern, scene.refine.rounds, scene.refine.tolerance = "pattern2", args.rounds, 0.0
+        if args.round_growth:
+            scene.refine.round_growth = args.round_growth
     torch.set_num_threads(1)
     profile = cProfile.Profile() if args.profile else None
     if profile:
@@ -90,6 +93,8 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=None)
     parser.add_argument("--rounds", type=int, default=0,
                         help="refine by the answer this many rounds (pattern 2; default 0: the scene's mesh)")
+    parser.add_argument("--round-growth", type=float, default=None,
+                        help="with --rounds, the most a round may grow the mesh (default: the scene's refine.round_growth)")
     parser.add_argument("--profile", action="store_true", help="print where the solve's time goes")
     parser.add_argument("--sort", default="tottime", help="the profile's order (pstats keys: tottime, cumulative, ...)")
     args = parser.parse_args()
