@@ -78,8 +78,7 @@ def conform_to_contacts(surfaces: list[SurfaceGeometry]) -> list[tuple[np.ndarra
     tolerance, gap = CONTACT_TOLERANCE * size, HOVER_GAP * size
     corners = [s.vertices[s.triangles] for s in surfaces]
     normals = [unit_normals(c) for c in corners]
-    low = np.stack([s.vertices.min(axis=0) for s in surfaces])
-    high = np.stack([s.vertices.max(axis=0) for s in surfaces])
+    low, high = bounding_boxes(corners)
     out = []
     for i, surface in enumerate(surfaces):
         frame = planar_frame(surface.vertices, surface.triangles, tolerance)
@@ -128,14 +127,11 @@ def _touching(frame: PlaneFrame, own: int, low: np.ndarray, high: np.ndarray, to
               gap: float) -> list[int]:
     """The surfaces (other than ``own``) whose bounding boxes (S, 3) ``low``/``high`` overlap
     ``own``'s and reach the plane or the ``gap`` in front of it (within ``tolerance`` behind)."""
-    overlap = ((low <= high[own] + gap) & (high >= low[own] - gap)).all(axis=1)
     centre, half = 0.5 * (low + high), 0.5 * (high - low)
     height = frame.height(centre)
     reach = half @ np.abs(frame.normal)
     crosses = (height - reach <= gap) & (height + reach >= -tolerance)
-    overlap &= crosses
-    overlap[own] = False
-    return np.flatnonzero(overlap).tolist()
+    return np.flatnonzero(overlapping(low, high, own, gap) & crosses).tolist()
 
 
 def _rows_on_plane(frame: PlaneFrame, corners: np.ndarray, low: np.ndarray, high: np.ndarray,
