@@ -103,6 +103,7 @@ class Result:
     sensors: survey.SensorReadings | None = None
     grids: dict[str, survey.GridReadings] = field(default_factory=dict)
     _shading: tuple | None = field(default=None, init=False, repr=False, compare=False)  # (settings, Shading)
+    _guide: tuple | None = field(default=None, init=False, repr=False, compare=False)  # (settings, (T,) errors)
 
     @classmethod
     def of_solver(cls, scene: Scene, solver: ProgressiveSolver) -> "Result":
@@ -133,8 +134,12 @@ class Result:
     def error_guide(self) -> torch.Tensor:
         """(T,) each element's interpolation estimate (``adaptive.answer.element_errors`` of
         the picture as drawn), which the final-gather estimates sample by
-        (``evaluation.gathered_error``, ``GUIDE_SHARE``)."""
-        return element_errors(self.mesh, self.display_radiosity, _picture(self.scene))
+        (``evaluation.gathered_error``, ``GUIDE_SHARE``). Made once for the settings it reads:
+        both estimates sample by it."""
+        settings = (self.scene.solver.reconstruction, self.scene.solver.ambient)
+        if self._guide is None or self._guide[0] != settings:
+            self._guide = settings, element_errors(self.mesh, self.display_radiosity, _picture(self.scene))
+        return self._guide[1]
 
     @property
     def ambient(self) -> torch.Tensor:
