@@ -20,10 +20,9 @@ import numpy as np
 import torch
 
 import hemirad
-from hemirad.evaluation.penumbra import surface_grid, visible_light_fraction
+from hemirad.evaluation.penumbra import floor_penumbra
 from hemirad.evaluation.pixels import errors_at_points
 from hemirad.evaluation.reference import Reference
-from hemirad.scene.meshing import build_mesh
 
 REFERENCES = Path(__file__).resolve().parent.parent / "tests" / "references"
 #: The visible share of the lamp that makes a floor point part of the penumbra band.
@@ -34,17 +33,6 @@ RUNS = (("uniform x0.5 (the study's finest)", 0.5, 0, None),
         ("answer from x2 to 3,426 elements (a third of the finest's)", 2.0, 8, 3426))
 
 
-def penumbra_band(scene, grid: int) -> tuple[np.ndarray, int]:
-    """(N, 3) the floor points in the band, and the floor's surface index (the same in the
-    refined meshes: refinement keeps surfaces)."""
-    mesh = build_mesh(scene)
-    floor = next(i for i, name in enumerate(mesh.surface_names) if name.endswith("floor"))
-    emitting = (scene.emission_table()[mesh.material] > 0).any(1)
-    points, normal, _ = surface_grid(mesh, floor, grid)
-    seen = visible_light_fraction(mesh, emitting, points, normal, 128)
-    return points[(seen > BAND[0]) & (seen < BAND[1])].numpy(), floor
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--grid", type=int, default=80, help="grid points along each side of the floor")
@@ -52,7 +40,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     shipped = hemirad.load_scene("floating")
-    points, floor = penumbra_band(shipped, args.grid)
+    grid_points, inside, floor = floor_penumbra(shipped, args.grid, BAND)
+    points = grid_points[inside].numpy()
     reference = Reference.load(REFERENCES, "floating")
     lines = ["# The floating rectangle's penumbra, pixel by pixel", "",
              f"Made by `python scripts/penumbra_band.py --grid {args.grid}`: {len(points)} floor points seeing "

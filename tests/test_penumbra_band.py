@@ -18,13 +18,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 import hemirad
-from hemirad.evaluation.penumbra import surface_grid, visible_light_fraction
+from hemirad.evaluation.penumbra import floor_penumbra
 from hemirad.evaluation.pixels import errors_at_points
 from hemirad.evaluation.reference import Reference
-from hemirad.scene.meshing import build_mesh
 
 REFERENCES = Path(__file__).resolve().parent / "references"
 GRID = 48
@@ -37,14 +35,8 @@ THIRD_OF_FINEST = 3426
 @pytest.fixture(scope="module")
 def band():
     """(rows of (n_i, 3) band points along the grid's rows, the floor's surface index)."""
-    shipped = hemirad.load_scene("floating")
-    mesh = build_mesh(shipped)
-    floor = next(i for i, name in enumerate(mesh.surface_names) if name.endswith("floor"))
-    emitting = (shipped.emission_table()[mesh.material] > 0).any(1)
-    points, normal, _ = surface_grid(mesh, floor, GRID)
-    seen = visible_light_fraction(mesh, emitting, points, normal, 128).reshape(GRID, GRID)
-    inside = (seen > BAND[0]) & (seen < BAND[1])
-    rows = [points.reshape(GRID, GRID, 3)[i][inside[i]].numpy() for i in range(GRID)]
+    points, inside, floor = floor_penumbra(hemirad.load_scene("floating"), GRID, BAND)
+    rows = [points[i][inside[i]].numpy() for i in range(GRID)]
     return [row for row in rows if len(row)], floor
 
 

@@ -12,6 +12,8 @@ import torch
 
 from hemirad.geometry.analytic import point_to_triangles
 from hemirad.geometry.mesh import Mesh
+from hemirad.scene.meshing import build_mesh
+from hemirad.scene.model import Scene
 from hemirad.transport.formfactor import delta_form_factors
 from hemirad.transport.hemicube import Hemicube, tangent_frame
 from hemirad.transport.renderer import clip_planes
@@ -81,3 +83,22 @@ def grid_cell(points: torch.Tensor, grid: torch.Tensor, axes: torch.Tensor, coun
     step = (hi - lo) / max(count - 1, 1)
     ij = torch.round((points @ axes.T - lo) / step).long().clamp(0, count - 1)
     return ij[:, 0] * count + ij[:, 1]
+
+
+def floor_penumbra(scene: Scene, count: int, band: tuple[float, float], resolution: int = 128
+                   ) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The penumbra on ``scene``'s floor (the surface whose name ends in ``floor``): a
+    ``count`` x ``count`` grid over it (``surface_grid``) and which of its points see
+    between ``band`` of the emitters' unoccluded form factor (``visible_light_fraction``, on
+    the scene's unrefined mesh).
+
+    Returns:
+        (count, count, 3) the grid's points, (count, count) bool the band, and the floor's
+        surface index (the same in refined meshes: refinement keeps surfaces).
+    """
+    mesh = build_mesh(scene)
+    floor = next(i for i, name in enumerate(mesh.surface_names) if name.endswith("floor"))
+    emitting = (scene.emission_table()[mesh.material] > 0).any(1)
+    points, normal, _ = surface_grid(mesh, floor, count)
+    seen = visible_light_fraction(mesh, emitting, points, normal, resolution)
+    return points.reshape(count, count, 3), ((seen > band[0]) & (seen < band[1])).reshape(count, count), floor
