@@ -636,7 +636,8 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
         try:
             refiner.load_state_dict(run["answer"]["refiner"])
             reports += [RoundReport(int(r["round"]), int(r["elements"]), int(r["split"]),
-                                    float(r["estimated_error"]), int(r["shots"])) for r in run["answer"]["rounds"]]
+                                    float(r["estimated_error"]), int(r["shots"]), int(r.get("kept_bytes", 0)))
+                        for r in run["answer"]["rounds"]]
         except (KeyError, TypeError, ValueError) as exc:
             raise HemiradInputError(f"cannot resume from {path}: its rounds of refinement judged on the answer "
                                     f"are missing or do not fit ({exc}). Start without --resume to begin "

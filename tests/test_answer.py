@@ -2,6 +2,7 @@
 regather that gives split elements' children their own light, conservation through late
 splits, and the run's options and statistics."""
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -10,14 +11,17 @@ import torch
 
 import hemirad
 from hemirad.core.fastops import flatnonzero
-from hemirad.adaptive.answer import (adopt_and_regather, element_errors, estimated_relative_error,
-                                     refine_by_answer, round_splits, split_by_error, tolerance_splits)
+import hemirad.adaptive.answer as answer
+from hemirad.adaptive.answer import (RoundReport, adopt_and_regather, element_errors, estimated_relative_error,
+                                     memory_growth, refine_by_answer, round_splits, split_by_error,
+                                     tolerance_splits)
 from hemirad.output.display import vertex_values
 from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.output.shading import gouraud_shading, picture_shading
 from hemirad.adaptive.refine import Refiner
 from hemirad.cli import main
-from hemirad.geometry.patches import build_patches
+from hemirad.core.errors import HemiradWarning
+from hemirad.geometry.patches import build_patches, group_patches
 from hemirad.scene.model import RefineOptions
 from hemirad.transport.shooters import PatchShooters
 from hemirad.transport.solver import ProgressiveSolver
@@ -200,6 +204,68 @@ def test_rounds_to_a_budget_grow_the_mesh_by_equal_ratios_and_never_past_it():
     assert round_splits(730, 20000, 4, 1, growth=2.5) == 365
     # grading left a sliver of the budget: not worth a fresh solve of the whole mesh
     assert round_splits(3692, 3701, 4, 6) == 0 and round_splits(3341, 3701, 4, 7) == 120
+
+
+def test_memory_growth_holds_a_round_to_the_kept_light_the_budget_allows():
+    def report(elements, kept):
+        return RoundReport(0, elements, 0, 0.1, 0, kept)
+
+    # the first round: the kept light taken to grow as elements^2
+    assert memory_growth([report(1000, 10 << 20)], 90 << 20) == pytest.approx(3.0)
+    # later: as the last round showed, 2x elements for 2.83x light: order 1.5
+    assert memory_growth([report(1000, 10 << 20), report(2000, int(2 ** 1.5 * (10 << 20)))],
+                         int(2 ** 1.5 * (10 << 20)) * 8) == pytest.approx(4.0)
+    # that order held within 1 and 2
+    assert memory_growth([report(1000, 10 << 20), report(2000, 11 << 20)], 44 << 20) == pytest.approx(4.0)
+    assert memory_growth([report(1000, 10 << 20), report(2000, 80 << 20)], 320 << 20) == pytest.approx(2.0)
+    # nothing kept (no sweeps): no bound; over the budget already: a round still grows it a little
+    assert memory_growth([report(1000, 0)], 1 << 20) == float("inf")
+    assert memory_growth([report(1000, 10 << 20)], 1 << 20) == answer.MIN_MEMORY_GROWTH
+
+
+@pytest.mark.parametrize("bounded", [True, False])
+def test_a_round_grows_the_mesh_no_more_than_its_fresh_solve_keeps_within_the_budget(bounded, monkeypatch):
+    # a closed box solved with sweeps, its memory for the kept light four times what the first
+    # solve keeps: a round of up to 5.5 times is held to about 2 times, and the refined solve
+    # keeps its sweeps; unbounded, the same round outgrows the memory and the sweeps stop
+    mesh = closed_box(element_size=0.25)
+    T = mesh.num_elements
+    rho, E = random_materials(T, seed=2, span=0.6, low=0.2, glowing=32)
+
+    def solver_with(cache_bytes):
+        return ProgressiveSolver(mesh, rho, E, 32, patches=PatchShooters(build_patches(mesh, np.full(T, 0.5)),
+                                                                         torch.device("cpu")),
+                                 near_reach=3.0, sweeps=True, cache_bytes=cache_bytes)
+
+    first = solver_with(1 << 30)
+    try:
+        first.run(10_000, 1e-3)
+        kept = first.kept_light_bytes
+    finally:
+        first.close()
+    assert kept > 0
+    if not bounded:
+        monkeypatch.setattr(answer, "memory_growth", lambda reports, budget: float("inf"))
+    solver = solver_with(4 * kept)
+    refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
+
+    def patches_for():
+        return PatchShooters(group_patches(solver.mesh, solver.patches.patch.numpy()), torch.device("cpu"))
+
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            rounds = refine_by_answer(solver, refiner, 100 * T, 0.0, 1, lambda: solver.run(10_000, 1e-3),
+                                      display=averaged, patches_for=patches_for)
+        outgrew = any(issubclass(w.category, HemiradWarning) and "outgrew" in str(w.message) for w in caught)
+        assert rounds[0].kept_bytes == kept
+        if bounded:
+            assert 1.9 * T < rounds[1].elements < 2.3 * T  # about 4^(1/2) times, grading included
+            assert not outgrew and solver.sweeps and rounds[1].kept_bytes <= 4 * kept
+        else:
+            assert rounds[1].elements > 5 * T and outgrew and not solver.sweeps
+    finally:
+        solver.close()
 
 
 def test_a_round_adds_what_the_tolerance_needs_with_the_error_falling_as_one_over_elements():

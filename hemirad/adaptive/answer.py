@@ -229,6 +229,18 @@ GENERATIONS = 2
 #: box from x2, asked for the finest uniform mesh's error, made a round of 19 elements after
 #: one of 1,600, for 3 s of its 10.
 MIN_ROUND_GROWTH = 0.05
+#: A round grows the mesh no more than the light its fresh solve keeps for the sweeps allows
+#: (``solver.cache_mb``; past it they shoot one patch at a time, many times slower). That
+#: light grows faster than the elements: measured over rounds (elements ratio, kept light
+#: ratio), floating from x2 3.2x / 5.8x, 3.1x / 3.4x, 3.1x / 3.2x; office from x1 2.7x / 3.5x,
+#: 2.7x / 2.8x; the furnished room of ``scripts/peer_room.py`` 2.0x / 3.5x (60 -> 213 MB),
+#: so its default round of 5.5 times outgrew 256 MB and took 405 s where a round of 2 took
+#: 161 s. The kept light is taken to grow as elements^order, the order the last round showed
+#: (within 1 and ``KEPT_LIGHT_ORDER``), this at the first (``memory_growth``).
+KEPT_LIGHT_ORDER = 2.0
+#: Where the kept light is already near the budget a round still grows the mesh this much:
+#: the user asked for it, and the solve then goes on one patch at a time where it must.
+MIN_MEMORY_GROWTH = 1.5
 
 
 def tolerance_splits(elements: int, estimated: float, tolerance: float, children: int) -> int:
@@ -236,6 +248,21 @@ def tolerance_splits(elements: int, estimated: float, tolerance: float, children
     ``estimated`` error to ``tolerance``, the error taken to fall as elements^-``ERROR_ORDER``."""
     needed = elements * (estimated / tolerance) ** (1.0 / ERROR_ORDER) - elements
     return max(0, math.ceil(needed / (children - 1)))
+
+
+def memory_growth(reports: "list[RoundReport]", budget_bytes: int) -> float:
+    """The most the next round may grow the mesh for its solve's kept light to stay within
+    ``budget_bytes``, the light kept after the last of ``reports`` taken to grow as
+    elements^order: the order the last two rounds' reports show, within 1 and
+    ``KEPT_LIGHT_ORDER``, else that; at least ``MIN_MEMORY_GROWTH``; inf where nothing was kept."""
+    kept = reports[-1].kept_bytes
+    if kept <= 0:
+        return math.inf
+    order = KEPT_LIGHT_ORDER
+    if len(reports) > 1 and reports[-2].kept_bytes > 0 and reports[-1].elements > reports[-2].elements:
+        order = math.log(kept / reports[-2].kept_bytes) / math.log(reports[-1].elements / reports[-2].elements)
+        order = min(max(order, 1.0), KEPT_LIGHT_ORDER)
+    return max(MIN_MEMORY_GROWTH, (budget_bytes / kept) ** (1.0 / order))
 
 
 def round_splits(elements: int, max_elements: int, children: int, rounds_left: int,
@@ -269,6 +296,7 @@ class RoundReport:
     split: int
     estimated_error: float
     shots: int
+    kept_bytes: int = 0  # the light the round's solve kept for its sweeps (``ProgressiveSolver.kept_light_bytes``)
 
 
 def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elements: int, tolerance: float,
@@ -282,7 +310,8 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
     is worst, until the estimated relative error is under ``tolerance``, the mesh has
     ``max_elements``, or ``rounds`` refinements were made. Each round may at most grow the
     element count ``refiner.options.round_growth`` times (``ROUND_GROWTH``), so the estimate is renewed as the mesh
-    learns; the rounds to the budget grow it by equal ratios (``round_splits``), a round
+    learns, and no more than its fresh solve's kept light fits the solver's memory for it
+    (``memory_growth``); the rounds to the budget grow it by equal ratios (``round_splits``), a round
     adds no more than the tolerance is predicted to need (``tolerance_splits``), and
     grading's extra splits never take it past the budget.
 
@@ -305,9 +334,9 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
         errors = element_errors(mesh, shown, display)
         estimated = (estimated_relative_error(mesh, shown, display, errors, solver.emission)
                      if estimate is None else estimate())
-        reports.append(RoundReport(index, mesh.num_elements, 0, estimated, solver.state.shots))
-        count = round_splits(mesh.num_elements, max_elements, refiner.children, rounds - index,
-                             refiner.options.round_growth)
+        reports.append(RoundReport(index, mesh.num_elements, 0, estimated, solver.state.shots, solver.kept_light_bytes))
+        growth = min(refiner.options.round_growth, memory_growth(reports, solver.cache_bytes))
+        count = round_splits(mesh.num_elements, max_elements, refiner.children, rounds - index, growth)
         if index == rounds or estimated <= tolerance or count <= 0:
             break
         if tolerance > 0:

@@ -44,6 +44,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 25: a round of refinement by the answer grows the mesh no more than its fresh solve's kept
+#: light is predicted to fit ``solver.cache_mb`` (``answer.memory_growth``);
 #: 24: a sweep that outgrows ``solver.cache_mb`` goes one patch at a time up to
 #: ``GROUPS_AHEAD`` groups later (its worker's groups are taken in later);
 #: 23: a footprint's rim shoots by its straight stretches (alone at its corners), and a
@@ -67,7 +69,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 24
+ARITHMETIC = 25
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
@@ -257,6 +259,7 @@ class ProgressiveSolver:
         self.sweeps = sweeps and patches is not None
         self.sweep_count = 0  # sweeps made (``sweeps``)
         self._transport: SweepTransport | None = None  # the kept light of the nodes that shot
+        self._outgrown_bytes = 0  # what the kept light held when it outgrew ``cache_bytes``
         if near_totals not in NEAR_TOTALS:
             raise ValueError(f"near_totals must be one of {', '.join(NEAR_TOTALS)}, not {near_totals!r}")
         self.near_reach, self.near_totals = near_reach, near_totals
@@ -276,6 +279,17 @@ class ProgressiveSolver:
     @property
     def _renderers(self) -> list[HemicubeRenderer]:
         return [self.renderer] + ([self.reflector_renderer] if self.reflector_renderer is not None else [])
+
+    @property
+    def cache_bytes(self) -> int:
+        """The memory the kept rows, and the light kept for sweeps, may each take."""
+        return self.rows.budget_bytes
+
+    @property
+    def kept_light_bytes(self) -> int:
+        """What the light kept for sweeps holds (``sweep.SweepTransport.nbytes``); where it
+        outgrew ``cache_bytes``, what it held then; 0 where none was kept."""
+        return self._transport.nbytes if self._transport is not None else self._outgrown_bytes
 
     @property
     def hemicubes_rendered(self) -> int:
@@ -551,7 +565,7 @@ class ProgressiveSolver:
                               f"at {self.mesh.num_elements} elements: from here patches shoot one at a time, drawing "
                               f"again each hemicube whose row was dropped, which can take many times longer; a "
                               f"larger solver.cache_mb (--cache-mb) keeps the sweeps", HemiradWarning)
-                self.sweeps, self._transport = False, None
+                self.sweeps, self._transport, self._outgrown_bytes = False, None, transport.nbytes
                 return self._shoot_patch()
         with self.profiler.phase("update"):
             leaf_power = torch.zeros(len(tree.leaf), 3, dtype=power.dtype, device=self.device).index_add_(
