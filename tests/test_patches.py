@@ -9,10 +9,12 @@ import torch
 
 import hemirad
 from hemirad.adaptive.shooter_split import point_source_test
-from hemirad.assembly import NEAR_REACH, make_solver
+from hemirad.assembly import NEAR_REACH, emitter_eye_level, make_solver
 from hemirad.core.colour import luminance
 from hemirad.core.errors import HemiradWarning
 from hemirad.geometry.patches import build_patches, element_sides, plane_axes
+from hemirad.lighting.photometry import emission_table
+from hemirad.scene.meshing import build_mesh
 from hemirad.transport.shooters import PatchShooters, back_face_share, either, eye_points, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver
 
@@ -310,6 +312,25 @@ def test_a_split_emitter_draws_the_penumbra_a_centroid_shot_cannot():
     # measured: 1.00 and 0.017 (0.050 with the hemicubes' pixel rows along the blocker's
     # edges, which then err by the same fraction of a pixel all along them)
     assert errors[False] > 0.15 and errors[True] < 0.03, errors
+
+
+def test_lamps_get_eyes_where_their_elements_are_large_beside_the_scene():
+    # floating's lamp of 0.2 m elements under a 2.5 m ceiling (8%) shoots from eyes where the
+    # answer refines; meshed at 0.05 m (2%) it does not need them, nor does any unrefined run
+    def level(lamp_element, criterion="answer", eyes="auto"):
+        scene = hemirad.load_scene("floating")
+        scene.refine.pattern, scene.refine.criterion = "pattern2", criterion
+        scene.solver.emitter_eyes = eyes
+        lamp_material = {m.name for m in scene.materials if m.emits}
+        for obj in scene.objects:
+            if obj.material in lamp_material:
+                obj.element_size = lamp_element
+        mesh = build_mesh(scene)
+        return emitter_eye_level(scene, mesh, emission_table(scene, mesh)[mesh.material])
+
+    assert level(0.2) == 1 and level(0.05) == 0
+    assert level(0.2, criterion="gradient") == 0
+    assert level(0.05, eyes=2) == 2
 
 
 def test_emitter_eyes_draw_the_penumbra_its_elements_centroids_cannot():

@@ -214,7 +214,7 @@ class SolverOptions:
     shooter_split: float | None = None  # with patches: split a shooter where eq. 7 exceeds this share
     # with patches: an emitting node shoots from the centroids of 4**emitter_eyes equal parts
     # of each of its elements (``transport.shooters.eye_points``) instead of its centroid;
-    # auto: ``Scene.emitter_eye_level``
+    # auto: ``assembly.emitter_eye_level``
     emitter_eyes: int | str = "auto"
     cache_mb: float = 256.0  # memory for form-factor rows kept between a shooter's shots
     # How receivers covering few hemicube pixels get their form factors: one of
@@ -364,24 +364,6 @@ class Scene:
     def refines_by_answer(self) -> bool:
         """Refinement between converged solves, judged on the solution (``adaptive.answer``)."""
         return self.refine.enabled and self.refine_criterion == ANSWER
-
-    @property
-    def emitter_eye_level(self) -> int:
-        """``solver.emitter_eyes`` made definite: ``auto`` is 1 with refinement judged on the
-        answer, 0 otherwise. A lamp's elements shoot as points, and the penumbrae they draw
-        are staircases once the receivers are finer than they are. Measured (relative MSE
-        against the references, converged): the answer's runs to a third of the finest
-        uniform mesh's elements, from x2 / x1, floating 0.00010 / 0.00023 -> 0.00009 /
-        0.00022, Cornell box 0.00030 / 0.00026 -> 0.00028 / 0.00022, office 0.00014 / 0.00033
-        -> 0.00013 / 0.00028, in 7-25% more seconds (the study's goal rows: three more
-        hemicubes a solve per lamp element; eyes on the refined meshes' solves only kept the
-        x1 runs' error as it was, for about the same seconds); floating's penumbra
-        band after three rounds from x1 from 3.9% largest, 99.0% within 3% to 2.1%, all
-        within 3%. The shipped uniform meshes gain nothing (floating 0.00165 -> 0.00162,
-        Cornell box 0.00117 -> 0.00123, office 0.00072 -> 0.00074; floating x0.5 0.00053 for
-        60% more seconds)."""
-        eyes = self.solver.emitter_eyes
-        return (1 if self.refines_by_answer else 0) if eyes == "auto" else int(eyes)
 
     @property
     def meshes_contacts(self) -> bool:

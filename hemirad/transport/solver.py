@@ -45,7 +45,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
 #: 25: a round of refinement by the answer grows the mesh no more than its fresh solve's kept
-#: light is predicted to fit ``solver.cache_mb`` (``answer.memory_growth``);
+#: light is predicted to fit ``solver.cache_mb`` (``answer.memory_growth``), and lamps whose
+#: elements are small beside the scene shoot without eyes (``assembly.emitter_eye_level``);
 #: 24: a sweep that outgrows ``solver.cache_mb`` goes one patch at a time up to
 #: ``GROUPS_AHEAD`` groups later (its worker's groups are taken in later);
 #: 23: a footprint's rim shoots by its straight stretches (alone at its corners), and a
