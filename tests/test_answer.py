@@ -12,7 +12,7 @@ import torch
 import hemirad
 from hemirad.core.fastops import flatnonzero
 import hemirad.adaptive.answer as answer
-from hemirad.adaptive.answer import (RoundReport, adopt_and_regather, element_errors, estimated_relative_error,
+from hemirad.adaptive.answer import (adopt_and_regather, element_errors, estimated_relative_error,
                                      memory_growth, refine_by_answer, round_splits, split_by_error,
                                      tolerance_splits)
 from hemirad.output.display import vertex_values
@@ -207,20 +207,10 @@ def test_rounds_to_a_budget_grow_the_mesh_by_equal_ratios_and_never_past_it():
 
 
 def test_memory_growth_holds_a_round_to_the_kept_light_the_budget_allows():
-    def report(elements, kept):
-        return RoundReport(0, elements, 0, 0.1, 0, kept)
-
-    # the first round: the kept light taken to grow as elements^2
-    assert memory_growth([report(1000, 10 << 20)], 90 << 20) == pytest.approx(3.0)
-    # later: as the last round showed, 2x elements for 2.83x light: order 1.5
-    assert memory_growth([report(1000, 10 << 20), report(2000, int(2 ** 1.5 * (10 << 20)))],
-                         int(2 ** 1.5 * (10 << 20)) * 8) == pytest.approx(4.0)
-    # that order held within 1 and 2
-    assert memory_growth([report(1000, 10 << 20), report(2000, 11 << 20)], 44 << 20) == pytest.approx(4.0)
-    assert memory_growth([report(1000, 10 << 20), report(2000, 80 << 20)], 320 << 20) == pytest.approx(2.0)
-    # nothing kept (no sweeps): no bound; over the budget already: a round still grows it a little
-    assert memory_growth([report(1000, 0)], 1 << 20) == float("inf")
-    assert memory_growth([report(1000, 10 << 20)], 1 << 20) == answer.MIN_MEMORY_GROWTH
+    # the kept light taken to grow as the square of the elements: 9x the memory, 3x the elements
+    assert memory_growth(10 << 20, 90 << 20) == pytest.approx(3.0)
+    assert memory_growth(10 << 20, 10 << 20) == pytest.approx(1.0)
+    assert memory_growth(0, 1 << 20) == float("inf")  # nothing kept (no sweeps): no bound
 
 
 @pytest.mark.parametrize("bounded", [True, False])
@@ -245,7 +235,7 @@ def test_a_round_grows_the_mesh_no_more_than_its_fresh_solve_keeps_within_the_bu
         first.close()
     assert kept > 0
     if not bounded:
-        monkeypatch.setattr(answer, "memory_growth", lambda reports, budget: float("inf"))
+        monkeypatch.setattr(answer, "memory_growth", lambda kept, budget: float("inf"))
     solver = solver_with(4 * kept)
     refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
 
@@ -264,6 +254,31 @@ def test_a_round_grows_the_mesh_no_more_than_its_fresh_solve_keeps_within_the_bu
             assert not outgrew and solver.sweeps and rounds[1].kept_bytes <= 4 * kept
         else:
             assert rounds[1].elements > 5 * T and outgrew and not solver.sweeps
+    finally:
+        solver.close()
+
+
+def test_refinement_stops_where_a_further_round_would_outgrow_the_memory():
+    # the closed box's first solve keeps more light than a round of MIN_MEMORY_GROWTH could
+    # keep within the budget: no round is made, and the run says why
+    mesh = closed_box(element_size=0.25)
+    T = mesh.num_elements
+    rho, E = random_materials(T, seed=2, span=0.6, low=0.2, glowing=32)
+    solver = ProgressiveSolver(mesh, rho, E, 32, patches=PatchShooters(build_patches(mesh, np.full(T, 0.5)),
+                                                                       torch.device("cpu")),
+                               near_reach=3.0, sweeps=True, cache_bytes=1 << 30)
+    refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
+
+    def shoot_on():
+        solver.run(10_000, 1e-3)
+        solver.rows.budget_bytes = int(solver.kept_light_bytes * 2.0)  # under 1.5^2 times what it keeps
+
+    try:
+        with pytest.warns(HemiradWarning, match="stopped at 192 elements.*solver.cache_mb"):
+            rounds = refine_by_answer(solver, refiner, 100 * T, 0.0, 2, shoot_on, display=averaged,
+                                      patches_for=lambda: PatchShooters(
+                                          group_patches(solver.mesh, solver.patches.patch.numpy()), torch.device("cpu")))
+        assert [r.elements for r in rounds] == [T] and rounds[0].split == 0
     finally:
         solver.close()
 
