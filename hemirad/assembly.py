@@ -81,7 +81,7 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
     refiner = Refiner(scene.refine, emission, relabel=relabel, bound=bound) if per_shot else None
     device = torch.device(select_device(scene.solver.device) if device is None else device)
     options = scene.solver
-    patches = make_patches(scene, mesh, device) if options.shoots_patches else None
+    patches = make_patches(scene, mesh, device, emission) if options.shoots_patches else None
     return ProgressiveSolver(mesh, reflectance, emission, options.resolution, refiner, cull=cull,
                              cache_bytes=int(options.cache_mb * (1 << 20)), patches=patches,
                              overshoot=options.overshoot, sweeps=options.sweeps, near_reach=NEAR_REACH if patches is not None else 0.0,
@@ -92,15 +92,16 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
                              reflector_resolution=resolved_reflector_resolution(options) if patches is not None else None)
 
 
-def make_patches(scene: Scene, mesh: Mesh, device: torch.device) -> PatchShooters:
-    """The patches of the initial ``mesh`` as ``scene.solver`` asks, with the shooter tests."""
+def make_patches(scene: Scene, mesh: Mesh, device: torch.device, emission: torch.Tensor | None = None) -> PatchShooters:
+    """The patches of the initial ``mesh`` (of (T, 3) ``emission``, by default the scene's) as
+    ``scene.solver`` asks, with the shooter tests."""
     owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]  # (T,) each element's object
     size = patch_sizes(scene, mesh, owner)
     apart = rim_stretches(scene, mesh, size)
     if apart is not None:
         size[apart < 0] = 0.0  # at a footprint's corners
     tree = build_patches(mesh, size, owner, apart)
-    emission = emission_table(scene, mesh)[mesh.material]
+    emission = emission_table(scene, mesh)[mesh.material] if emission is None else emission
     return PatchShooters(tree, device, shooter_test(scene),
                          source_corners=mesh.corners, eye_level=emitter_eye_level(scene, mesh, emission))
 
@@ -121,7 +122,7 @@ def emitter_eye_level(scene: Scene, mesh: Mesh, emission: torch.Tensor) -> int:
     within 3% to 2.1%, all within 3%. Their lamps' elements are 4.8-8% of the scene's
     extent as shipped (twice that from x2). The furnished room of ``scripts/peer_room.py``
     lights its globes with 1,080 elements of 2.4% of its height, each shooting alone once
-    refined: refined once by the answer, 85.1 s without eyes against 176.5 s with (4,737
+    refined: refined once by the answer, 85.5 s without eyes against 176.5 s with (4,737
     hemicubes against 12,099), the same errors at its 185 points (median 0.8% / 0.9% as
     drawn, relative RMS 2.2%). The shipped uniform meshes gain nothing (floating 0.00165 ->
     0.00162, Cornell box 0.00117 -> 0.00123, office 0.00072 -> 0.00074; floating x0.5
