@@ -213,21 +213,29 @@ def test_memory_growth_holds_a_round_to_the_kept_light_the_budget_allows():
     assert memory_growth(0, 1 << 20) == float("inf")  # nothing kept (no sweeps): no bound
 
 
+def swept_box(cache_bytes):
+    """The closed box of random reflectances, one glowing face, shooting in sweeps within
+    ``cache_bytes``; its element count and emission."""
+    mesh = closed_box(element_size=0.25)
+    T = mesh.num_elements
+    rho, E = random_materials(T, seed=2, span=0.6, low=0.2, glowing=32)
+    solver = ProgressiveSolver(mesh, rho, E, 32, patches=PatchShooters(build_patches(mesh, np.full(T, 0.5)),
+                                                                       torch.device("cpu")),
+                               near_reach=3.0, sweeps=True, cache_bytes=cache_bytes)
+    return solver, T, E
+
+
+def regrouped_patches(solver):
+    """The solver's patches on its refined mesh, each holding its elements' children."""
+    return PatchShooters(group_patches(solver.mesh, solver.patches.patch.numpy()), torch.device("cpu"))
+
+
 @pytest.mark.parametrize("bounded", [True, False])
 def test_a_round_grows_the_mesh_no_more_than_its_fresh_solve_keeps_within_the_budget(bounded, monkeypatch):
     # a closed box solved with sweeps, its memory for the kept light four times what the first
     # solve keeps: a round of up to 5.5 times is held to about 2 times, and the refined solve
     # keeps its sweeps; unbounded, the same round outgrows the memory and the sweeps stop
-    mesh = closed_box(element_size=0.25)
-    T = mesh.num_elements
-    rho, E = random_materials(T, seed=2, span=0.6, low=0.2, glowing=32)
-
-    def solver_with(cache_bytes):
-        return ProgressiveSolver(mesh, rho, E, 32, patches=PatchShooters(build_patches(mesh, np.full(T, 0.5)),
-                                                                         torch.device("cpu")),
-                                 near_reach=3.0, sweeps=True, cache_bytes=cache_bytes)
-
-    first = solver_with(1 << 30)
+    first, _, _ = swept_box(1 << 30)
     try:
         first.run(10_000, 1e-3)
         kept = first.kept_light_bytes
@@ -236,17 +244,13 @@ def test_a_round_grows_the_mesh_no_more_than_its_fresh_solve_keeps_within_the_bu
     assert kept > 0
     if not bounded:
         monkeypatch.setattr(answer, "memory_growth", lambda kept, budget: float("inf"))
-    solver = solver_with(4 * kept)
+    solver, T, E = swept_box(4 * kept)
     refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
-
-    def patches_for():
-        return PatchShooters(group_patches(solver.mesh, solver.patches.patch.numpy()), torch.device("cpu"))
-
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             rounds = refine_by_answer(solver, refiner, 100 * T, 0.0, 1, lambda: solver.run(10_000, 1e-3),
-                                      display=averaged, patches_for=patches_for)
+                                      display=averaged, patches_for=lambda: regrouped_patches(solver))
         outgrew = any(issubclass(w.category, HemiradWarning) and "outgrew" in str(w.message) for w in caught)
         assert rounds[0].kept_bytes == kept
         if bounded:
@@ -261,12 +265,7 @@ def test_a_round_grows_the_mesh_no_more_than_its_fresh_solve_keeps_within_the_bu
 def test_refinement_stops_where_a_further_round_would_outgrow_the_memory():
     # the closed box's first solve keeps more light than a round of MIN_MEMORY_GROWTH could
     # keep within the budget: no round is made, and the run says why
-    mesh = closed_box(element_size=0.25)
-    T = mesh.num_elements
-    rho, E = random_materials(T, seed=2, span=0.6, low=0.2, glowing=32)
-    solver = ProgressiveSolver(mesh, rho, E, 32, patches=PatchShooters(build_patches(mesh, np.full(T, 0.5)),
-                                                                       torch.device("cpu")),
-                               near_reach=3.0, sweeps=True, cache_bytes=1 << 30)
+    solver, T, E = swept_box(1 << 30)
     refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
 
     def shoot_on():
@@ -276,8 +275,7 @@ def test_refinement_stops_where_a_further_round_would_outgrow_the_memory():
     try:
         with pytest.warns(HemiradWarning, match="stopped at 192 elements.*solver.cache_mb"):
             rounds = refine_by_answer(solver, refiner, 100 * T, 0.0, 2, shoot_on, display=averaged,
-                                      patches_for=lambda: PatchShooters(
-                                          group_patches(solver.mesh, solver.patches.patch.numpy()), torch.device("cpu")))
+                                      patches_for=lambda: regrouped_patches(solver))
         assert [r.elements for r in rounds] == [T] and rounds[0].split == 0
     finally:
         solver.close()
