@@ -1,4 +1,5 @@
 """The hemicube renderer: per-face frustum culling changes no pixel."""
+import threading
 import time
 
 import numpy as np
@@ -14,6 +15,7 @@ from hemirad.core.errors import HemiradWarning
 from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport import solver as solver_module
 from hemirad.transport.solver import ProgressiveSolver
+from hemirad.transport import sweep as sweep_module
 from hemirad.transport.sweep import group_light
 
 from patches import refined_solve
@@ -123,6 +125,28 @@ def test_a_sweep_gives_the_same_numbers_however_far_its_worker_lags(monkeypatch)
     assert torch.equal(behind.state.unshot, in_step.state.unshot)
 
 
+def test_the_drawing_thread_makes_what_the_lagging_worker_has_not_begun_with_the_same_numbers(monkeypatch):
+    # a worker slowed down: the drawing thread makes the newest groups instead of waiting
+    # (sweep.make_newest_here); the numbers are those of a run whose worker made them all
+    made_by = []
+
+    def slow_on_the_worker(*args):
+        worker = threading.current_thread().name.startswith("hemirad-sweep")
+        made_by.append("worker" if worker else "drawing")
+        if worker:
+            time.sleep(0.05)
+        return group_light(*args)
+    monkeypatch.setattr(sweep_module, "group_light", slow_on_the_worker)
+    shared = _solve_office_in_sweeps()
+    assert made_by.count("drawing") > 0 and made_by.count("worker") > 0, made_by
+    made_by.clear()
+    monkeypatch.setattr(solver_module, "make_newest_here", lambda groups: False)  # wait for the worker
+    worker_only = _solve_office_in_sweeps()
+    assert made_by.count("drawing") == 0
+    assert torch.equal(shared.state.radiosity, worker_only.state.radiosity)
+    assert torch.equal(shared.state.unshot, worker_only.state.unshot)
+
+
 def test_a_sweep_outgrowing_its_memory_gives_the_same_numbers_however_slow_its_worker(monkeypatch):
     # the sweep goes one patch at a time where the light kept outgrows cache_mb (3 MB: partway
     # through the reflectors' first sweep), which it must find at the same patch whether or
@@ -143,7 +167,7 @@ def test_a_sweep_outgrowing_its_memory_gives_the_same_numbers_however_slow_its_w
     def slow_group_light(*args):
         time.sleep(0.05)
         return group_light(*args)
-    monkeypatch.setattr(solver_module, "group_light", slow_group_light)
+    monkeypatch.setattr(sweep_module, "group_light", slow_group_light)
     slow, slow_stop = solve_and_stopping_point()
     assert quick_stop == slow_stop > 0
     assert torch.equal(quick.state.radiosity, slow.state.radiosity)

@@ -12,7 +12,7 @@ import sys
 import threading
 import time
 import warnings
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
@@ -34,7 +34,7 @@ from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
 from hemirad.transport.shooters import PatchShooters, eye_points
 from hemirad.transport.smallreceivers import BOUNCE_MAX_PIXELS, MAX_PIXELS, small_receiver_form_factors
-from hemirad.transport.sweep import SweepTransport, group_light
+from hemirad.transport.sweep import GroupLight, SweepTransport, make_newest_here
 from hemirad.transport.view import HemicubeView
 
 # The phases a solve's time is reported in (``ProgressiveSolver.timings``, stats.json).
@@ -81,12 +81,14 @@ NEAR_BATCH = 32
 #: How many groups the drawing thread may run ahead of the worker that makes their light
 #: (``ProgressiveSolver._make_group``), which runs at the lowest priority (``_yield_to_drawing``):
 #: the light is needed at the sweep's end, the drawing thread and Mesa's two threads are the
-#: sweep's critical path, and the worker takes what cores they leave. Measured on the
-#: furnished room (2 cores, with Mesa's driver thread, interleaved): 9.4-10.1 s (mean 9.58 s
-#: over six runs) against 9.5-10.8 s (mean 9.98 s) with one group ahead at the drawing
-#: thread's priority, and 9.8-9.9 s with one group ahead at the lowest. About 100 MB more
-#: views at the peak.
-GROUPS_AHEAD = 8
+#: sweep's critical path, and the worker takes what cores they leave. Where the drawing
+#: thread would wait for it, it makes the newest groups the worker has not begun
+#: (``sweep.make_newest_here``), so a short lead costs no time and holds fewer views.
+#: Measured on 2 cores (interleaved runs, seconds and peak memory), 8 groups ahead against 2:
+#: the furnished room 9.5 / 9.3 s, 1.67 / 1.50 GB against 9.4 / 9.4 s, 1.51 / 1.43 GB; refined
+#: once by the answer 79.6 s, 3.57 GB against 81.2 s, 3.28 GB; the study's floating and office
+#: runs to 3,416 elements the same within 0.1 s.
+GROUPS_AHEAD = 2
 
 
 def _yield_to_drawing() -> None:
@@ -512,7 +514,9 @@ class ProgressiveSolver:
         # the sweep (a resumed run's first sweep makes the near fields of every group it needs).
         # A group's rows and near fields are made on a worker thread while this one draws the
         # next groups' hemicubes (``_make_group``, up to ``GROUPS_AHEAD``): torch's kernels let
-        # go of the interpreter, and the near fields' contour integrals are mostly kernel.
+        # go of the interpreter, and the near fields' contour integrals are mostly kernel. While
+        # this thread would wait for the oldest group, it makes the newest the worker has not
+        # begun (``make_newest_here``).
         groups = sorted({patch // NEAR_BATCH for patch in shooting.tolist()} - transport.groups)
         order = [patch for g in groups for patch in range(g * NEAR_BATCH, min((g + 1) * NEAR_BATCH, tree.num_patches))]
         new: dict[int, tuple[torch.Tensor, HemicubeView | None]] = {}  # the group's nodes: (F, view)
@@ -521,6 +525,8 @@ class ProgressiveSolver:
         kept_before = transport.nbytes
 
         def take_in() -> None:
+            while not making[0][1].done() and make_newest_here([light for _, light in making]):
+                pass
             before = transport.nbytes
             self._join_group(making.popleft())
             taken.append(transport.nbytes - before)
@@ -665,12 +671,12 @@ class ProgressiveSolver:
         weights = (areas / (areas.sum() * per_element)).repeat_interleave(per_element)
         return eye_points(self.mesh.corners_of(members), self.patches.eye_level), weights
 
-    def _make_group(self, nodes: dict[int, tuple[torch.Tensor | None, HemicubeView]]) -> Future:
+    def _make_group(self, nodes: dict[int, tuple[torch.Tensor | None, HemicubeView]]) -> GroupLight:
         """Start making a sweep group's rows and near fields: the ``nodes`` (node -> (row or
         None, view)) without a row get one (``node_row``). Rows that draw (emitters' eyes) and
         pixel sums are made here; the rows of small receivers and the near fields on the
-        worker thread (``sweep.group_light``), which touches no state of the solver: the
-        future's result is taken in by ``_join_group``."""
+        worker thread, or this one where it would wait for them (``sweep.GroupLight``), which
+        touch no state of the solver: taken in by ``_join_group``."""
         batch = {}  # node -> (view, pixel limit)
         for node, (F, view) in nodes.items():
             if F is not None:
@@ -690,15 +696,15 @@ class ProgressiveSolver:
                     if self.near_reach > 0 else {})
         if self._worker is None:
             self._worker = ThreadPoolExecutor(1, thread_name_prefix="hemirad-sweep", initializer=_yield_to_drawing)
-        return self._worker.submit(group_light, self.mesh, batch, shooters, self.near_reach, self.near_totals)
+        return GroupLight(self._worker, self.mesh, batch, shooters, self.near_reach, self.near_totals)
 
-    def _join_group(self, making: tuple[dict, Future]) -> None:
+    def _join_group(self, making: tuple[dict, GroupLight]) -> None:
         """Take in what the worker made of a sweep group (``_make_group``: its nodes, as the
-        sweep gathered them, and the future), waiting for it if need be, and add the nodes to
+        sweep gathered them, and their ``GroupLight``), waiting for it if need be, and add the nodes to
         the sweeps' kept light."""
-        nodes, future = making
+        nodes, light = making
         with self.profiler.phase("update"):
-            rows, near = future.result()
+            rows, near = light.result()
             for node, F in rows.items():
                 self.rows.put(node, F)
                 nodes[node] = (F, nodes[node][1])

@@ -18,11 +18,14 @@ sum over them is the same bit for bit in a run resumed from a checkpoint.
 
 What a group of nodes adds (their rows' small receivers and their near fields) is made by
 ``group_light``, a function of the mesh and the nodes' views alone, so the solver runs it on
-a worker thread while it draws the next group's hemicubes.
+a worker thread while it draws the next group's hemicubes, and where it would wait for the
+worker, on its own (``GroupLight``).
 """
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import torch
@@ -191,3 +194,45 @@ def group_light(mesh: Mesh, small: dict[int, tuple[HemicubeView, float]], shoote
         return rows, {}
     made = [replace(s, form_factors=rows[node]) if s.form_factors is None else s for node, s in shooters.items()]
     return rows, dict(zip(shooters, near_fields(mesh, made, reach, totals)))
+
+
+class GroupLight:
+    """``group_light`` of one sweep group, made on the ``worker`` thread, or on the thread that
+    waits for it where the worker has not begun it (``make_here``): the same numbers either way."""
+
+    def __init__(self, worker: ThreadPoolExecutor, *args):
+        self._args = args
+        self._future = worker.submit(group_light, *args)
+        self._made = None
+
+    def done(self) -> bool:
+        return self._made is not None or self._future.done()
+
+    def make_here(self) -> bool:
+        """Make it on this thread if the worker has not begun it; whether it did."""
+        if self._made is not None or not self._future.cancel():
+            return False
+        self._made = group_light(*self._args)
+        return True
+
+    def result(self) -> tuple[dict[int, torch.Tensor], dict[int, NearReceivers]]:
+        """``group_light``'s result, waiting for the worker if it is making it."""
+        return self._made if self._made is not None else self._future.result()
+
+
+def make_newest_here(groups: Sequence[GroupLight]) -> bool:
+    """Make on this thread the newest of ``groups`` (oldest first, sent to one worker, which
+    takes them in that order) that the worker has not begun; whether there was one.
+
+    A thread that must wait for the oldest does this instead while it can: the worker and it
+    then work from both ends. At the end of a sweep, when nothing is left to draw, a worker
+    alone on the groups sent last left a core idle: floating's refined solve (3,416 elements,
+    2 cores) drew its reflectors in 0.70 s and waited 0.85 s more for their light. Measured
+    (the study's runs from x2 to 3,416 elements, two interleaved runs each): floating 3.82 /
+    3.98 s -> 3.63 / 3.60 s, the Cornell box 3.47 / 3.53 -> 3.32 / 3.33 s, office 5.81 / 5.77
+    -> 5.69 / 5.65 s, the same numbers."""
+    for group in reversed(groups):
+        if group.done():
+            continue  # made here before
+        return group.make_here()
+    return False
