@@ -511,10 +511,11 @@ def test_sweep_matrices_are_the_same_whatever_batches_their_entries_came_in():
     rows, columns = cells // shape[1], cells % shape[1]
     values = torch.rand(300, generator=g, dtype=torch.float64)
     whole = _SortedCSR(shape, torch.device("cpu"))
-    whole.merge(rows, columns, values)
+    key = rows * shape[1] + columns
+    whole.merge(key, values)
     parts = _SortedCSR(shape, torch.device("cpu"))
     for part in torch.randperm(300, generator=g).split([170, 1, 129]):
-        parts.merge(rows[part], columns[part], values[part])
+        parts.merge(key[part], values[part])
     for a, b in ((whole.crow, parts.crow), (whole.columns, parts.columns), (whole.values, parts.values)):
         assert torch.equal(a, b)
     dense = torch.zeros(shape, dtype=torch.float64).index_put_((rows, columns), values)
