@@ -353,6 +353,29 @@ def test_rows_made_together_are_the_rows_made_alone(resolutions):
     assert sum(not torch.equal(a, v.form_factors) for a, v in zip(together, views)) >= 3  # corrected rows
 
 
+def test_samples_made_in_several_passes_give_the_one_pass_rows_bit_for_bit(monkeypatch):
+    # a sweep group's samples are made SAMPLE_CHUNK at a time (to bound the temporaries), in
+    # runs of whole receivers: the rows are the same to the last bit as in one pass
+    from hemirad.transport import smallreceivers
+
+    mesh = build_mesh(hemirad.load_scene("cornell_box"))
+    renderer = HemicubeRenderer(mesh, R)
+    try:
+        views = [renderer.render(s) for s in (0, 17, 400)]
+    finally:
+        renderer.close()
+    limits = [MAX_PIXELS, 2.5, MAX_PIXELS]
+    one_pass = small_receiver_rows(views, mesh.corners, mesh.areas, limits)
+    passes = []
+    made = smallreceivers._visible_form_factors
+    monkeypatch.setattr(smallreceivers, "_visible_form_factors", lambda *a: passes.append(len(a[2])) or made(*a))
+    monkeypatch.setattr(smallreceivers, "SAMPLE_CHUNK", 37)  # not a whole number of any receiver's samples
+    several = small_receiver_rows(views, mesh.corners, mesh.areas, limits)
+    assert len(passes) > 10 and sum(passes) > len(passes)
+    for a, b in zip(one_pass, several):
+        assert torch.equal(a, b)
+
+
 def test_a_sweeps_kept_rows_are_its_nodes_rows_made_alone():
     scene = hemirad.load_scene("cornell_box")
     scene.solver.small_receivers, scene.solver.resolution = "closed_form", 32

@@ -56,6 +56,10 @@ MAX_PIXELS = 16.0
 BOUNCE_MAX_PIXELS = 1.0
 #: Visibility samples per receiver: about one a pixel of its footprint, at most SAMPLE_LEVEL^2.
 SAMPLE_LEVEL = 4
+#: Samples made in one pass at most (``visible_form_factors``; runs of whole receivers): each
+#: holds about 400 bytes of temporaries while it is made, and a sweep group of a furnished
+#: room's lamp elements sends half a million and more.
+SAMPLE_CHUNK = 1 << 17
 #: A receiver whose sub-triangles are longer than this fraction of its distance from the eye
 #: gets the closed form times its visible share rather than the sampled sum (the sum's
 #: relative error is about the square of that ratio: under 0.3% where it is used).
@@ -191,9 +195,27 @@ def visible_form_factors(views: Sequence[HemicubeView], view_of: torch.Tensor, r
         rows: (n,) front-facing receivers; corners: (n, 3, 3) theirs; areas: (n,) theirs.
         levels: (n,) int64 each one's samples: the level^2 points of ``sample_barycentrics``.
     """
-    n, device = len(rows), corners.device
+    n = len(rows)
     if n > 1 and bool((view_of[1:] < view_of[:-1]).any()):
         raise ValueError("visible_form_factors: view_of must be non-decreasing (receivers grouped by view)")
+    ends = (levels * levels).cumsum(0)  # (n,) where each receiver's samples end
+    if n == 0 or int(ends[-1]) <= SAMPLE_CHUNK:
+        return _visible_form_factors(views, view_of, rows, corners, areas, levels)
+    parts, start = [], 0
+    while start < n:  # runs of whole receivers, each of at most SAMPLE_CHUNK samples (or one receiver)
+        done = int(ends[start - 1]) if start else 0
+        end = max(start + 1, int(torch.searchsorted(ends, done + SAMPLE_CHUNK, right=True)))
+        parts.append(_visible_form_factors(views, view_of[start:end], rows[start:end], corners[start:end],
+                                           areas[start:end], levels[start:end]))
+        start = end
+    return torch.cat([sampled for sampled, _ in parts]), torch.cat([unoccluded for _, unoccluded in parts])
+
+
+def _visible_form_factors(views: Sequence[HemicubeView], view_of: torch.Tensor, rows: torch.Tensor,
+                          corners: torch.Tensor, areas: torch.Tensor, levels: torch.Tensor
+                          ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``visible_form_factors`` of receivers whose samples are made in one pass."""
+    n, device = len(rows), corners.device
     # every receiver's level^2 samples in turn: sample i of receiver p is row begin[level_p] + i
     # of the table (one gather for all levels)
     table, begin = _sample_table(int(levels.max()), device)
