@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from typing import Callable
 
+import numpy as np
 import torch
 
 from hemirad.core.fastops import flatnonzero, row_sums
@@ -159,6 +160,7 @@ class PatchShooters:
         self.cuts: dict[int, list[int]] = {}
         self.shooter_splits = 0
         self._members: dict[int, torch.Tensor] = {}  # per node, while the elements are unchanged
+        self._leaf_runs = None  # (the elements in leaf order, their leaf positions as numpy) for ``members``
         self._bounds = list(zip(tree.lo.tolist(), tree.hi.tolist()))  # per node (lo, hi), as ints
         self.sent = torch.zeros(tree.num_nodes, 3, dtype=torch.float64, device=device)
         self.sent_by_leaf = torch.zeros(len(tree.leaf), 3, dtype=torch.float64, device=device)
@@ -180,6 +182,7 @@ class PatchShooters:
         for rows in (self._leaf, self._patch, self._source):
             rows.inherit(parent)
         self._members.clear()
+        self._leaf_runs = None
 
     def use_mesh(self, mesh: Mesh) -> None:
         """Take the mesh the tree was built on (its elements are the leaves); its elements
@@ -268,9 +271,12 @@ class PatchShooters:
         """(K,) the elements of ``node``."""
         members = self._members.get(node)
         if members is None:
-            lo, hi = self._bounds[node]
-            leaf = self.leaf
-            members = self._members[node] = flatnonzero((leaf >= lo) & (leaf < hi))
+            if self._leaf_runs is None:  # once per mesh: a node's elements are then one run of it
+                order = torch.argsort(self.leaf, stable=True)
+                self._leaf_runs = order, self.leaf.index_select(0, order).cpu().numpy()
+            order, sorted_leaf = self._leaf_runs
+            start, end = np.searchsorted(sorted_leaf, self._bounds[node]).tolist()
+            members = self._members[node] = torch.sort(order[start:end]).values  # in element order
         return members
 
     def cut(self, patch: int, render: Callable[[int], HemicubeView], corners: torch.Tensor) -> list[int]:
@@ -322,6 +328,7 @@ class PatchShooters:
         device = self.leaf.device
         self._leaf, self._patch, self._source = (GrowingRows(rows.to(device)) for rows in (leaf, patch, source))
         self._members.clear()
+        self._leaf_runs = None
         self._sources.clear()
         self.cuts = {int(p): part.tolist() for p, part in zip(patches, torch.split(nodes, sizes.tolist()))}
         self.shooter_splits = int(state["shooter_splits"])

@@ -268,7 +268,7 @@ class ProgressiveSolver:
         self.near_reach, self.near_totals = near_reach, near_totals
         self._near: dict[int, NearReceivers] = {}
         self._views: dict[int, HemicubeView] = {}  # rendered for shooters whose near field is not made yet
-        self._emitters: dict[int, tuple[bool, bool]] = {}  # ``_emitting``
+        self._emitters: tuple[np.ndarray, np.ndarray] | None = None  # ``_emitting``
         self._worker: ThreadPoolExecutor | None = None  # makes sweep groups' light (``_make_group``)
         if patches is not None:
             self.use_patches(patches)
@@ -337,7 +337,7 @@ class ProgressiveSolver:
         self.rows.clear()
         self._near.clear()
         self._views.clear()
-        self._emitters.clear()
+        self._emitters = None
         self._transport = None
 
     def restart(self, patches: PatchShooters) -> None:
@@ -649,13 +649,21 @@ class ProgressiveSolver:
 
     def _emitting(self, shooter: int) -> tuple[bool, bool]:
         """Whether any, and whether all, of the elements of ``shooter`` (a node; without
-        patches, an element) emit; kept per node while the mesh is unchanged (a sweep asks
-        each node several times)."""
-        known = self._emitters.get(shooter)
-        if known is None:
-            emits = (self.emission[self.shooter_elements(shooter)].reshape(-1, 3) > 0).any(1)
-            known = self._emitters[shooter] = (bool(emits.any()), bool(emits.all()))
-        return known
+        patches, an element) emit; found for every shooter at once while the mesh and patches
+        are unchanged (a sweep asks each node several times)."""
+        if self._emitters is None:
+            emits = (self.emission > 0).any(dim=1).cpu().numpy()  # (T,)
+            if self.patches is None:
+                self._emitters = emits, emits
+            else:  # a node's elements are those of its leaf positions [lo, hi): counted by prefix sums
+                tree, leaf = self.patches.tree, self.patches.leaf.cpu().numpy()
+                before = [np.concatenate([[0], np.cumsum(np.bincount(leaf, weights=w, minlength=len(tree.leaf)))])
+                          for w in (None, emits.astype(np.float64))]
+                lo, hi = tree.lo.cpu().numpy(), tree.hi.cpu().numpy()
+                members, emitting = (b[hi] - b[lo] for b in before)
+                self._emitters = emitting > 0, emitting == members
+        some, every = self._emitters
+        return bool(some[shooter]), bool(every[shooter])
 
     def _eyes(self, shooter: int) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Where a node whose elements all emit shoots from, with the patches' ``eye_level``:
