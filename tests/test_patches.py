@@ -51,6 +51,22 @@ def test_patches_tile_each_plane_and_their_trees_reach_every_element():
     assert np.allclose(element_sides(mesh), 0.25)
 
 
+def test_a_nodes_members_and_their_counts_follow_the_receivers_splits():
+    # after a split the children share their parent's leaf position: a node holds exactly the
+    # elements whose leaf position lies in its [lo, hi), in element order, and counts them so
+    mesh = closed_box(element_size=0.25)
+    patches = PatchShooters(build_patches(mesh, np.full(mesh.num_elements, 0.5)), torch.device("cpu"))
+    parent = torch.cat([torch.arange(mesh.num_elements), torch.arange(0, mesh.num_elements, 3).repeat(3)])
+    patches.inherit(parent)
+    marked = torch.arange(len(parent)) % 5 == 0
+    counts, marked_counts = patches.member_counts(), patches.member_counts(marked)
+    leaf, tree = patches.leaf, patches.tree
+    for node in range(tree.num_nodes):
+        inside = torch.nonzero((leaf >= tree.lo[node]) & (leaf < tree.hi[node])).reshape(-1)
+        assert torch.equal(patches.members(node), inside)
+        assert counts[node] == len(inside) and marked_counts[node] == int(marked[inside].sum())
+
+
 def test_every_node_splits_into_the_quadrants_of_its_box_numbered_depth_first():
     # uneven elements (two sizes on one floor) make trees of several depths and lopsided quadrants
     floor = quad((0, 0, 0), (1.0, 0, 0), (0, 0.6, 0))

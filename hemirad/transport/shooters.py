@@ -279,6 +279,15 @@ class PatchShooters:
             members = self._members[node] = torch.sort(order[start:end]).values  # in element order
         return members
 
+    def member_counts(self, flags: torch.Tensor | None = None) -> np.ndarray:
+        """(N,) int64 per node, how many elements it holds, or how many of them ``flags`` (T,)
+        bool marks: prefix sums over the leaf positions, a node's elements being those of its
+        positions [lo, hi)."""
+        leaf = self.leaf.cpu().numpy()
+        weights = None if flags is None else flags.cpu().numpy()
+        before = np.concatenate([[0], np.cumsum(np.bincount(leaf, weights, len(self.tree.leaf)).astype(np.int64))])
+        return before[self.tree.hi.cpu().numpy()] - before[self.tree.lo.cpu().numpy()]
+
     def cut(self, patch: int, render: Callable[[int], HemicubeView], corners: torch.Tensor) -> list[int]:
         """The nodes ``patch`` shoots from: its root, or where ``split_test`` says so, its
         children's cuts; but not a node whose elements all lie ``under_cover``: splitting it

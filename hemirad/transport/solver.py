@@ -652,16 +652,12 @@ class ProgressiveSolver:
         patches, an element) emit; found for every shooter at once while the mesh and patches
         are unchanged (a sweep asks each node several times)."""
         if self._emitters is None:
-            emits = (self.emission > 0).any(dim=1).cpu().numpy()  # (T,)
+            emits = (self.emission > 0).any(dim=1)  # (T,)
             if self.patches is None:
-                self._emitters = emits, emits
-            else:  # a node's elements are those of its leaf positions [lo, hi): counted by prefix sums
-                tree, leaf = self.patches.tree, self.patches.leaf.cpu().numpy()
-                before = [np.concatenate([[0], np.cumsum(np.bincount(leaf, weights=w, minlength=len(tree.leaf)))])
-                          for w in (None, emits.astype(np.float64))]
-                lo, hi = tree.lo.cpu().numpy(), tree.hi.cpu().numpy()
-                members, emitting = (b[hi] - b[lo] for b in before)
-                self._emitters = emitting > 0, emitting == members
+                self._emitters = (emits.cpu().numpy(),) * 2
+            else:
+                emitting = self.patches.member_counts(emits)
+                self._emitters = emitting > 0, emitting == self.patches.member_counts()
         some, every = self._emitters
         return bool(some[shooter]), bool(every[shooter])
 
