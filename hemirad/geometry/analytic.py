@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import Optional
 
 import numpy as np
 import torch
 
 from hemirad.core.device import as_tensor
+from hemirad.core.scripted import scripted
 
 
 def _t(x) -> torch.Tensor:
@@ -71,7 +73,7 @@ def _clip_to_positive(triangles: torch.Tensor, d: torch.Tensor) -> tuple[torch.T
     """The (T, 3, 3) ``triangles`` clipped to where the signed height ``d`` (T, 3), given at
     their corners and linear along their edges, is positive: (T, 6, 3) the clipped
     polygons' vertices in order (their first ``count`` slots) and (T, 1) ``count``, 0 to 4."""
-    T = len(triangles)
+    T = triangles.shape[0]
     nxt = torch.tensor([1, 2, 0], device=triangles.device)
     d0, d1 = d, d[:, nxt]
     v0, v1 = triangles, triangles[:, nxt]
@@ -87,6 +89,7 @@ def _clip_to_positive(triangles: torch.Tensor, d: torch.Tensor) -> tuple[torch.T
     return polygon, valid.sum(1, keepdim=True)
 
 
+@scripted
 def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
     """Unoccluded form factors from a differential area to many triangles at once.
 
@@ -97,19 +100,23 @@ def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: tor
         point: (3,), or (T, 1, 3) a point per triangle; normal: (3,) unit, or (T, 1, 3) one
             per triangle; triangles: (T, 3, 3).
     Returns:
-        (T,) form factors, >= 0.
+        (T,) form factors, >= 0. One kernel (``core.scripted``).
     """
     d = _along(triangles - point, normal)  # (T, 3) heights above the tangent plane
     # most triangles lie wholly above: their three edges as they are (a third of the work of
     # the six slots clipping leaves)
-    out = _lambert_sum(point, normal, triangles, triangles[:, [1, 2, 0]])
+    out = _lambert_sum(point, normal, triangles, triangles.index_select(1, torch.tensor([1, 2, 0], device=triangles.device)))
     cut = torch.nonzero((d <= 0).any(1)).reshape(-1)
-    if len(cut) == 0:
+    n = cut.shape[0]
+    if n == 0:
         return out
-    point, normal = (x.index_select(0, cut) if x.dim() > 1 else x for x in (point, normal))
+    if point.dim() > 1:
+        point = point.index_select(0, cut)
+    if normal.dim() > 1:
+        normal = normal.index_select(0, cut)
     polygon, count = _clip_to_positive(triangles.index_select(0, cut), d.index_select(0, cut))
-    slot = torch.arange(6, device=triangles.device).expand(len(cut), 6)
-    following = torch.gather(polygon, 1, ((slot + 1) % count.clamp(min=1))[..., None].expand(len(cut), 6, 3))
+    slot = torch.arange(6, device=triangles.device).expand(n, 6)
+    following = torch.gather(polygon, 1, ((slot + 1) % count.clamp(min=1))[..., None].expand(n, 6, 3))
     return out.index_copy(0, cut, _lambert_sum(point, normal, polygon, following, slot < count))
 
 
@@ -119,13 +126,13 @@ def _along(x: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
 
 
 def _lambert_sum(point: torch.Tensor, normal: torch.Tensor, polygon: torch.Tensor, following: torch.Tensor,
-                 edge: torch.Tensor | None = None) -> torch.Tensor:
+                 edge: Optional[torch.Tensor] = None) -> torch.Tensor:
     """(T,) Lambert's formula from ``point`` along ``normal`` (as ``point_to_triangles``
     takes them) summed over the edges from ``polygon`` to ``following`` (T, m, 3), those of
     ``edge`` (T, m) only, or all."""
     R, R_next = polygon - point, following - point
     cross = torch.linalg.cross(R, R_next)
-    cross_norm = cross.norm(dim=-1)
+    cross_norm = torch.linalg.vector_norm(cross, dim=-1)
     theta = torch.atan2(cross_norm, (R * R_next).sum(-1))
     edge = cross_norm > 0 if edge is None else edge & (cross_norm > 0)
     term = torch.where(edge, theta * _along(cross, normal) / torch.where(edge, cross_norm, 1.0), 0.0)
@@ -148,26 +155,27 @@ def _log_distance_to_segment(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, 
     t0 = wx * b[:, 0:1] + wy * b[:, 1:2] + wz * b[:, 2:3]
     h2 = (wx * wx + wy * wy + wz * wz - t0 * t0).clamp(min=0.0)
     h = h2.sqrt()
+    return _antiderivative(length[:, None] - t0, h, h2) - _antiderivative(-t0, h, h2)
 
-    def antiderivative(u):
-        return 0.5 * torch.xlogy(u, u * u + h2) - u + h * torch.atan2(u, h)
 
-    return antiderivative(length[:, None] - t0) - antiderivative(-t0)
+def _antiderivative(u: torch.Tensor, h: torch.Tensor, h2: torch.Tensor) -> torch.Tensor:
+    """int ln sqrt(u^2 + h^2) du at ``u``, for ``h`` and its square ``h2``."""
+    return 0.5 * torch.xlogy(u, u * u + h2) - u + h * torch.atan2(u, h)
 
 
 def _closed_polygons(triangles: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """(T, 5, 3) the ``triangles`` clipped to positive ``d`` (``_clip_to_positive``) as closed
     polygons of four edges: slots past the last vertex repeat the first (an empty polygon
     is five copies of a point), so the unused edges have length 0."""
-    closed = triangles[:, [0, 1, 2, 0, 0]]
+    closed = triangles.index_select(1, torch.tensor([0, 1, 2, 0, 0], device=triangles.device))
     # the others lie on the positive side, touching at most (a corner at 0 stays a corner)
     cut = torch.nonzero((d < 0).any(1) | (d <= 0).all(1)).reshape(-1)
-    if len(cut) == 0:
+    if cut.shape[0] == 0:
         return closed
     polygon, count = _clip_to_positive(triangles.index_select(0, cut), d.index_select(0, cut))
-    k = torch.arange(5, device=triangles.device).expand(len(cut), 5)
+    k = torch.arange(5, device=triangles.device).expand(cut.shape[0], 5)
     index = torch.where(k < count, k, torch.zeros_like(k))
-    return closed.index_copy(0, cut, torch.gather(polygon, 1, index[..., None].expand(len(cut), 5, 3)))
+    return closed.index_copy(0, cut, torch.gather(polygon, 1, index[..., None].expand(cut.shape[0], 5, 3)))
 
 
 def _breakpoint_nodes(origin: torch.Tensor, direction: torch.Tensor, length: torch.Tensor, start_r: torch.Tensor,
@@ -186,8 +194,8 @@ def _breakpoint_nodes(origin: torch.Tensor, direction: torch.Tensor, length: tor
     feet = torch.minimum(feet.clamp(min=0.0), length[:, None]).sort(1).values  # (E, 2)
     ends = torch.cat([torch.zeros_like(feet[:, :1]), feet, length[:, None]], 1)  # (E, 4)
     low, half = ends[:, :3], 0.5 * (ends[:, 1:] - ends[:, :3])  # (E, 3) each piece's start and half-length
-    nodes = (low[:, :, None] + half[:, :, None] * (x + 1.0)).reshape(len(origin), -1)
-    return nodes, half.repeat_interleave(len(x), 1)
+    nodes = (low[:, :, None] + half[:, :, None] * (x + 1.0)).reshape(origin.shape[0], -1)
+    return nodes, half.repeat_interleave(x.shape[0], 1)
 
 
 def triangle_to_triangles(sources: torch.Tensor, receivers: torch.Tensor, points: int = 4,
@@ -219,7 +227,19 @@ def triangle_to_triangles(sources: torch.Tensor, receivers: torch.Tensor, points
     Returns:
         (m,) F(s -> r) >= 0; 0 for coplanar pairs and pairs that face away.
     """
-    m, device = len(sources), sources.device
+    x, w = (t.to(sources.device) for t in _gauss_legendre(points))
+    if pieces:
+        w = w.repeat(3)  # the same rule on each of an edge's three pieces (``_breakpoint_nodes``)
+    return _contour_integrals(sources, receivers, x, w, max(1, chunk // (3 * points)), pieces)
+
+
+@scripted
+def _contour_integrals(sources: torch.Tensor, receivers: torch.Tensor, x: torch.Tensor, w: torch.Tensor, step: int,
+                       pieces: bool) -> torch.Tensor:
+    """``triangle_to_triangles`` for the Gauss rule ``x``, ``w`` (n,) (repeated for each of
+    three pieces with ``pieces``), ``step`` edge pairs at a pass: one kernel, run without
+    the interpreter lock (``core.scripted``)."""
+    m, device = sources.shape[0], sources.device
     cross_s = torch.linalg.cross(sources[:, 1] - sources[:, 0], sources[:, 2] - sources[:, 0])
     area_s = 0.5 * torch.linalg.vector_norm(cross_s, dim=1)
     normal_s = cross_s / (2.0 * area_s.clamp(min=1e-300))[:, None]
@@ -239,17 +259,13 @@ def triangle_to_triangles(sources: torch.Tensor, receivers: torch.Tensor, points
     b = dq / M.clamp(min=1e-300)[..., None]
     along = torch.bmm(a, b.transpose(1, 2))  # (m, 4, 4) a_i . b_j
     # only the edge pairs that contribute: both of some length, not at right angles
-    pair, i, j = torch.nonzero((L[:, :, None] > 0) & (M[:, None, :] > 0) & (along.abs() > 1e-12), as_tuple=True)
+    pair, i, j = torch.nonzero((L[:, :, None] > 0) & (M[:, None, :] > 0) & (along.abs() > 1e-12)).unbind(1)
     source_edge, receiver_edge = pair * 4 + i, pair * 4 + j  # into the (4 m,) flattened edges
     p, a, L = p.reshape(-1, 3), a.reshape(-1, 3), L.reshape(-1)
     q, b, M = q.reshape(-1, 3), b.reshape(-1, 3), M.reshape(-1)
     along = along.reshape(-1).index_select(0, source_edge * 4 + j)
-    x, w = (t.to(device) for t in _gauss_legendre(points))
-    if pieces:
-        w = w.repeat(3)  # the same rule on each of an edge's three pieces (``_breakpoint_nodes``)
     total = torch.zeros(m, dtype=sources.dtype, device=device)
-    step = max(1, chunk // (3 * points))
-    for start in range(0, len(pair), step):
+    for start in range(0, pair.shape[0], step):
         se, re = source_edge[start:start + step], receiver_edge[start:start + step]
         origin, direction, length = p.index_select(0, se), a.index_select(0, se), L.index_select(0, se)
         start_r, direction_r, length_r = q.index_select(0, re), b.index_select(0, re), M.index_select(0, re)
@@ -257,9 +273,9 @@ def triangle_to_triangles(sources: torch.Tensor, receivers: torch.Tensor, points
             s, ds = _breakpoint_nodes(origin, direction, length, start_r, direction_r, length_r, x)  # (E, 3 n)
         else:
             ds = 0.5 * length[:, None]
-            s, ds = ds * (x + 1.0), ds.expand(len(se), len(x))  # (E, n)
-        X, Y, Z = (origin[:, c:c + 1] + s * direction[:, c:c + 1] for c in range(3))
-        inner = _log_distance_to_segment(X, Y, Z, start_r, direction_r, length_r)
+            s, ds = ds * (x + 1.0), ds.expand(se.shape[0], x.shape[0])  # (E, n)
+        inner = _log_distance_to_segment(origin[:, 0:1] + s * direction[:, 0:1], origin[:, 1:2] + s * direction[:, 1:2],
+                                         origin[:, 2:3] + s * direction[:, 2:3], start_r, direction_r, length_r)
         total.index_add_(0, pair[start:start + step], (inner * ds * w).sum(1) * along[start:start + step])
     return (total / (2.0 * math.pi * area_s.clamp(min=1e-300))).clamp(min=0.0)
 

@@ -53,6 +53,7 @@ from typing import Sequence
 import torch
 
 from hemirad.core.fastops import flatnonzero, row_sums, segments
+from hemirad.core.scripted import scripted
 from hemirad.geometry.analytic import point_to_triangles, small_triangle_factors, triangle_to_triangles
 from hemirad.geometry.mesh import Mesh
 from hemirad.transport.smallreceivers import visible_form_factors
@@ -155,6 +156,32 @@ def area_factors(sources: torch.Tensor, receivers: torch.Tensor, receiver_normal
     factor too (``SMALL_RECEIVER``: or its reciprocal, from points of a small receiver)."""
     if len(source) == 0:
         return from_point.new_zeros(0)
+    out, touching, apart, by_points, by_centroid = _pair_factors(
+        sources, receivers, receiver_normals, points, normals, from_point, source, receiver, one_shooter,
+        (CONTOUR_GAP, SMALL_RECEIVER, CENTROID_APART, PIECES_GAP, _ON_PLANE))
+    for pairs, factors, chunk_size in (
+            (touching, lambda s, r: triangle_to_triangles(s, r, GAUSS_POINTS), CONTOUR_CHUNK),
+            (apart, lambda s, r: triangle_to_triangles(s, r, APART_POINTS, pieces=False), CONTOUR_CHUNK),
+            (by_points, lambda s, r: small_triangle_factors(s, r, 3), CONTOUR_CHUNK),
+            (by_centroid, lambda s, r: small_triangle_factors(s, r, 1), 3 * CONTOUR_CHUNK)):
+        for chunk in pairs.split(chunk_size) if len(pairs) else ():  # (an empty tensor splits into one empty part)
+            out.index_copy_(0, chunk, factors(sources.index_select(0, source.index_select(0, chunk)),
+                                              receivers.index_select(0, receiver.index_select(0, chunk))))
+    return out
+
+
+@scripted
+def _pair_factors(sources: torch.Tensor, receivers: torch.Tensor, receiver_normals: torch.Tensor, points: torch.Tensor,
+                  normals: torch.Tensor, from_point: torch.Tensor, source: torch.Tensor, receiver: torch.Tensor,
+                  one_shooter: bool, limits: tuple[float, float, float, float, float]
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``area_factors``' pairs (same arguments) as one kernel (``core.scripted``): (C,) every
+    pair's factor from G's, and the pairs (into C) whose factor must be made otherwise: (a)
+    close ones by the contour integral in pieces, (b) by it over whole edges, (c) from three
+    points of a small receiver, (d) from its centroid. ``limits``: ``CONTOUR_GAP``,
+    ``SMALL_RECEIVER``, ``CENTROID_APART``, ``PIECES_GAP`` and ``_ON_PLANE`` (a kernel takes
+    no globals)."""
+    contour_gap, small_receiver, centroid_apart, pieces_gap, on_plane = limits
     side, centre, radius = _sides_centroids_radii(sources)  # (K,) ...
     _, receiver_centre, receiver_radius = _sides_centroids_radii(receivers)  # (N,) ...
     to_receiver = receiver_centre - points  # (N, 3) from G
@@ -163,26 +190,16 @@ def area_factors(sources: torch.Tensor, receivers: torch.Tensor, receiver_normal
     cos_j = -row_sums(to_receiver * receiver_normals) / distance
     steady = (cos_g > 0.1) & (cos_j > 0.1)  # (N,)
     kernel_g = torch.where(steady, cos_g * cos_j / distance.square(), 1.0)
-    if one_shooter:  # every source with every receiver, source by source: broadcast (k, N), not gathered
-        def by_receiver(x: torch.Tensor) -> torch.Tensor:
-            return x[None]
-
-        def by_source(x: torch.Tensor) -> torch.Tensor:
-            return x[:, None]
-    else:
-        def by_receiver(x: torch.Tensor) -> torch.Tensor:
-            return x.index_select(0, receiver)
-
-        def by_source(x: torch.Tensor) -> torch.Tensor:
-            return x.index_select(0, source)
-    d = by_receiver(receiver_centre) - by_source(centre)  # (C, 3) from the source's centroid
+    d = _by_receiver(receiver_centre, receiver, one_shooter) - _by_source(centre, source, one_shooter)  # (C, 3)
     d2 = row_sums(d * d)
-    gap = (d2.sqrt() - by_source(radius) - by_receiver(receiver_radius)).clamp(min=0.0).reshape(-1)
-    kernel = (row_sums(d * by_receiver(normals)).clamp(min=0.0)
-              * (-row_sums(d * by_receiver(receiver_normals))).clamp(min=0.0) / d2.square())
-    out = (by_receiver(from_point / kernel_g) * kernel).reshape(-1)
-    side, steady = by_source(side).expand(d2.shape).reshape(-1), by_receiver(steady).expand(d2.shape).reshape(-1)
-    close = flatnonzero((gap < CONTOUR_GAP * side) | ~steady)
+    gap = (d2.sqrt() - _by_source(radius, source, one_shooter)
+           - _by_receiver(receiver_radius, receiver, one_shooter)).clamp(min=0.0).reshape(-1)
+    kernel = (row_sums(d * _by_receiver(normals, receiver, one_shooter)).clamp(min=0.0)
+              * (-row_sums(d * _by_receiver(receiver_normals, receiver, one_shooter))).clamp(min=0.0) / d2.square())
+    out = (_by_receiver(from_point / kernel_g, receiver, one_shooter) * kernel).reshape(-1)
+    side = _by_source(side, source, one_shooter).expand(d2.shape).reshape(-1)
+    steady = _by_receiver(steady, receiver, one_shooter).expand(d2.shape).reshape(-1)
+    close = torch.nonzero((gap < contour_gap * side) | ~steady).reshape(-1)
     # a receiver far smaller than its source, in front of the source's plane (touching it at
     # most): by reciprocity from points of the receiver
     close_source, close_receiver = source.index_select(0, close), receiver.index_select(0, close)
@@ -191,21 +208,23 @@ def area_factors(sources: torch.Tensor, receivers: torch.Tensor, receiver_normal
     heights = ((receivers.index_select(0, close_receiver) - sources.index_select(0, close_source)[:, :1])
                * source_normals.index_select(0, close_source)[:, None]).sum(-1)  # (c, 3)
     close_radius, close_side = receiver_radius.index_select(0, close_receiver), side.index_select(0, close)
-    on_plane = _ON_PLANE * close_side[:, None]
-    small = (heights >= -on_plane).all(1) & (heights > on_plane).any(1) & (close_radius <= SMALL_RECEIVER * close_side)
-    by_centroid = small & (gap.index_select(0, close) >= CENTROID_APART * close_radius)
+    plane = on_plane * close_side[:, None]
+    small = (heights >= -plane).all(1) & (heights > plane).any(1) & (close_radius <= small_receiver * close_side)
+    by_centroid = small & (gap.index_select(0, close) >= centroid_apart * close_radius)
     by_points = small & ~by_centroid
-    apart = gap.index_select(0, close) >= PIECES_GAP * close_side
-    for pairs, factors, chunk_size in (
-            (close[~small & ~apart], lambda s, r: triangle_to_triangles(s, r, GAUSS_POINTS), CONTOUR_CHUNK),
-            (close[~small & apart], lambda s, r: triangle_to_triangles(s, r, APART_POINTS, pieces=False),
-             CONTOUR_CHUNK),
-            (close[by_points], lambda s, r: small_triangle_factors(s, r, 3), CONTOUR_CHUNK),
-            (close[by_centroid], lambda s, r: small_triangle_factors(s, r, 1), 3 * CONTOUR_CHUNK)):
-        for chunk in pairs.split(chunk_size) if len(pairs) else ():  # (an empty tensor splits into one empty part)
-            out.index_copy_(0, chunk, factors(sources.index_select(0, source.index_select(0, chunk)),
-                                              receivers.index_select(0, receiver.index_select(0, chunk))))
-    return out
+    apart = gap.index_select(0, close) >= pieces_gap * close_side
+    return out, close[~small & ~apart], close[~small & apart], close[by_points], close[by_centroid]
+
+
+def _by_receiver(x: torch.Tensor, receiver: torch.Tensor, one_shooter: bool) -> torch.Tensor:
+    """``x`` (N, ...) per receiver, per pair: broadcast over the sources (1, N, ...) with
+    ``one_shooter``, else gathered by ``receiver``."""
+    return x[None] if one_shooter else x.index_select(0, receiver)
+
+
+def _by_source(x: torch.Tensor, source: torch.Tensor, one_shooter: bool) -> torch.Tensor:
+    """``x`` (K, ...) per source, per pair: (K, 1, ...) with ``one_shooter``, else gathered by ``source``."""
+    return x[:, None] if one_shooter else x.index_select(0, source)
 
 
 def visibility(views: Sequence[HemicubeView], view_of: torch.Tensor, rows: torch.Tensor, corners: torch.Tensor,

@@ -36,6 +36,7 @@ import torch
 
 from hemirad.core.device import cached_per_device
 from hemirad.core.fastops import flatnonzero, row_sums
+from hemirad.core.scripted import scripted
 from hemirad.geometry.analytic import point_to_triangles
 from hemirad.transport.formfactor import sum_by_index
 from hemirad.transport.hemicube import FACES, face_viewports
@@ -120,6 +121,13 @@ def atlas_pixels(local: torch.Tensor, resolution: int) -> torch.Tensor:
     falls in (``formfactor.hemicube_directions``' layout); a direction below the horizon
     gets the side face's lowest row."""
     axis, sign, bottom, y0, height = _face_table(resolution, local.device)
+    return _atlas_pixels(local, axis, sign, bottom, y0, height, resolution)
+
+
+@scripted
+def _atlas_pixels(local: torch.Tensor, axis: torch.Tensor, sign: torch.Tensor, bottom: torch.Tensor, y0: torch.Tensor,
+                  height: torch.Tensor, resolution: int) -> torch.Tensor:
+    """``atlas_pixels`` given the ``_face_table``: one kernel (``core.scripted``)."""
     x, y, z = local.unbind(1)
     ax, ay = x.abs(), y.abs()
     side = torch.where(ax >= ay, torch.where(x > 0, 1, 2), torch.where(y > 0, 3, 4))
@@ -162,11 +170,19 @@ def small_receivers(view: HemicubeView, corners: torch.Tensor, areas: torch.Tens
 
 def _facing_footprint(view: HemicubeView, areas: torch.Tensor) -> torch.Tensor:
     """(T,) ``footprint_pixels`` without the horizon test (0 for an element that faces away)."""
-    height = -view.distance  # n_j . (eye - p_j): > 0 where the eye sees the front
-    local = (view.points - view.eye) @ view.frame.T  # (T, 3)
+    return _footprints(view.distance, view.points, view.eye, view.frame, areas, 0.25 * view.resolution ** 2)
+
+
+@scripted
+def _footprints(distance: torch.Tensor, points: torch.Tensor, eye: torch.Tensor, frame: torch.Tensor,
+                areas: torch.Tensor, scale: float) -> torch.Tensor:
+    """``_facing_footprint`` of the view's (T,) ``distance`` and (T, 3) ``points``, its ``eye``
+    (3,) and ``frame`` (3, 3), ``scale`` = R^2 / 4: one kernel (``core.scripted``)."""
+    height = -distance  # n_j . (eye - p_j): > 0 where the eye sees the front
+    local = (points - eye) @ frame.T  # (T, 3)
     m = torch.maximum(local[:, :2].abs().amax(1), local[:, 2])
     seen = (height > 0) & (m > 0)
-    return torch.where(seen, areas * height * (0.25 * view.resolution ** 2) / torch.where(seen, m, 1.0) ** 3, 0.0)
+    return torch.where(seen, areas * height * scale / torch.where(seen, m, 1.0) ** 3, 0.0)
 
 
 def _above_horizon(view: HemicubeView, corners: torch.Tensor) -> torch.Tensor:
@@ -241,8 +257,7 @@ def _sample_weights(views: Sequence[HemicubeView], view_of: torch.Tensor, points
     first = views[0]
     eyes = torch.stack([view.eye for view in views]).index_select(0, view_of)  # (N, 3)
     frames = torch.stack([view.frame for view in views]).index_select(0, view_of)  # (N, 3, 3)
-    ray = points - eyes  # (N, 3) from the eye to the point
-    local = row_sums(ray[:, None, :] * frames)  # (N, 3) along t, b and n
+    ray, local, weight = _sample_kernels(points, eyes, frames)
     resolutions = [view.resolution for view in views]  # a sweep group's lamps and reflectors may differ
     pixels = _per_resolution(view_of, resolutions, lambda R, rows: atlas_pixels(_rows(local, rows), R),
                              (len(local),), torch.int64)
@@ -250,31 +265,49 @@ def _sample_weights(views: Sequence[HemicubeView], view_of: torch.Tensor, points
     parts = pixels.split(torch.bincount(view_of, minlength=len(views)).tolist())
     seen = torch.cat([view.element.index_select(0, part) for view, part in zip(views, parts)])
     other = flatnonzero((seen >= 0) & (seen != owner))  # samples whose pixel sees another element
-    r2 = row_sums(ray * ray)
-    weight = local[:, 2].clamp(min=0.0) / (r2 * r2)
     if len(other) == 0:
         return weight, weight
-    k = seen.index_select(0, other)
-    eye = eyes.index_select(0, other)
-    ray = ray.index_select(0, other)
-    normal_k = first.normals.index_select(0, k)
-    toward = row_sums(normal_k * ray)  # n_k . ray
-    d_k = row_sums((first.points.index_select(0, k) - eye) * normal_k)  # the ray meets k's plane at d_k / toward of its length
-    crosses = (d_k * toward > 0) & (d_k.abs() < (1.0 - _TOLERANCE) * toward.abs())
-    j = owner.index_select(0, other)
-    normal_j = first.normals.index_select(0, j)
-    d_j = row_sums((first.points.index_select(0, j) - eye) * normal_j)  # < 0: the eye is in front of j
-    # where the pixel's own ray (its centre's direction, in the world) meets k's plane,
-    # along n_j from the eye
     pixels = pixels.index_select(0, other)
     direction = _per_resolution(view_of.index_select(0, other), resolutions, lambda R, rows: pixel_directions(
         R, points.device).index_select(1, _rows(pixels, rows)).T, (len(other), 3), points.dtype)
-    axes = frames.index_select(0, other)  # (M, 3, 3): rows t, b, n in the world
+    hidden = _hidden_samples(other, seen.index_select(0, other), owner.index_select(0, other), eyes.index_select(0, other),
+                             ray.index_select(0, other), frames.index_select(0, other), direction, first.points,
+                             first.normals, _TOLERANCE)
+    return weight, weight.index_fill(0, hidden, 0.0)
+
+
+@scripted
+def _sample_kernels(points: torch.Tensor, eyes: torch.Tensor, frames: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(N, 3) the rays from the ``eyes`` (N, 3) to the ``points`` (N, 3), (N, 3) the same in
+    their eyes' ``frames`` (N, 3, 3: rows t, b, n), and (N,) the kernels z / r^4."""
+    ray = points - eyes
+    local = row_sums(ray[:, None, :] * frames)  # (N, 3) along t, b and n
+    r2 = row_sums(ray * ray)
+    return ray, local, local[:, 2].clamp(min=0.0) / (r2 * r2)
+
+
+@scripted
+def _hidden_samples(other: torch.Tensor, k: torch.Tensor, j: torch.Tensor, eye: torch.Tensor, ray: torch.Tensor,
+                    axes: torch.Tensor, direction: torch.Tensor, points: torch.Tensor, normals: torch.Tensor,
+                    tolerance: float) -> torch.Tensor:
+    """(h,) those of the samples ``other`` (M,) that the shadow map hides: each a sample of
+    receiver ``j`` (M,) whose pixel sees element ``k`` (M,), along ``ray`` (M, 3) from ``eye``
+    (M, 3), the pixel's centre in the ``direction`` (M, 3) of the eye's frame ``axes`` (M, 3,
+    3: rows t, b, n in the world); ``points`` and ``normals`` (T, 3) the elements';
+    ``tolerance``, ``_TOLERANCE`` (a kernel takes no globals)."""
+    normal_k = normals.index_select(0, k)
+    toward = row_sums(normal_k * ray)  # n_k . ray
+    d_k = row_sums((points.index_select(0, k) - eye) * normal_k)  # the ray meets k's plane at d_k / toward of its length
+    crosses = (d_k * toward > 0) & (d_k.abs() < (1.0 - tolerance) * toward.abs())
+    normal_j = normals.index_select(0, j)
+    d_j = row_sums((points.index_select(0, j) - eye) * normal_j)  # < 0: the eye is in front of j
+    # where the pixel's own ray (its centre's direction, in the world) meets k's plane,
+    # along n_j from the eye
     direction = direction[:, 0:1] * axes[:, 0] + direction[:, 1:2] * axes[:, 1] + direction[:, 2:3] * axes[:, 2]
     seen_at = d_k / row_sums(direction * normal_k) * row_sums(direction * normal_j)
-    in_front = seen_at - d_j > _TOLERANCE * d_j.abs()
-    hidden = other.index_select(0, flatnonzero(crosses & in_front))
-    return weight, weight.index_fill(0, hidden, 0.0)
+    in_front = seen_at - d_j > tolerance * d_j.abs()
+    return other.index_select(0, torch.nonzero(crosses & in_front).reshape(-1))
 
 
 def _per_resolution(view_of: torch.Tensor, resolutions: Sequence[int], make: Callable, shape: tuple,
