@@ -371,6 +371,30 @@ def test_emitter_eyes_draw_the_penumbra_its_elements_centroids_cannot():
     assert renders == [32, 128, 512]
 
 
+def test_a_sweep_makes_a_lamps_eye_rows_on_its_worker_as_single_shots_make_them():
+    # In sweeps a lamp's eyes are drawn on the drawing thread and their rows made with their
+    # group's on the worker, summed by their weights (``sweep.group_light``): the rows and the
+    # light shots one at a time give, to the last bits a batch rounds otherwise.
+    mesh, rho, E, on_floor, expected, penumbra = penumbra_setup(0.1)
+    made = []
+    for sweeps in (False, True):
+        shooters = PatchShooters(build_patches(mesh, np.zeros(mesh.num_elements)), torch.device("cpu"), eye_level=1)
+        solver = ProgressiveSolver(mesh, rho, E, 64, patches=shooters, overshoot=False, near_reach=0.0,
+                                   small_receivers="closed_form", sweeps=sweeps)
+        try:
+            solver.run(32, 0.0)  # each emitting element's shot
+        finally:
+            solver.close()
+        lamp = shooters.tree.root[shooters.patch[mesh.surface == 0]].tolist()
+        assert len(lamp) == 32 and solver.hemicubes_rendered >= 32 * 4
+        made.append((torch.stack([solver.rows.get(node, mesh.num_elements) for node in lamp]),
+                     solver.state.radiosity[on_floor, 0]))
+    (shot_rows, shot_floor), (swept_rows, swept_floor) = made
+    assert bool((shot_rows[:, on_floor] > 0).any())
+    torch.testing.assert_close(swept_rows, shot_rows, rtol=1e-12, atol=1e-18)
+    torch.testing.assert_close(swept_floor, shot_floor, rtol=1e-12, atol=0)
+
+
 def test_eye_points_share_a_triangle_equally_and_begin_at_its_centroid():
     corners = torch.tensor([[[0.0, 0, 0], [2, 0, 0], [0, 1, 0]], [[1, 1, 1], [1, 2, 1], [1, 1, 3]]],
                            dtype=torch.float64)

@@ -14,7 +14,7 @@ import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Callable, Iterator, Protocol
 
 import numpy as np
 import torch
@@ -630,17 +630,26 @@ class ProgressiveSolver:
         eyes = self._eyes(shooter)
         if eyes is None:
             return self.shot_row(view, among, self._emits(shooter))
+        F = torch.zeros_like(view.form_factors)
+        for eye_view, weight in self._eye_views(shooter, view, eyes):
+            F += weight * self.shot_row(eye_view, among, True)
+        return F
+
+    def _eye_views(self, shooter: int, view: HemicubeView, eyes: tuple[torch.Tensor, torch.Tensor]
+                   ) -> Iterator[tuple[HemicubeView, float]]:
+        """What each of the ``eyes`` (``_eyes``) of ``shooter`` sees, and its weight, drawn in
+        turn (the next while the caller uses one). A one-element node's first eye is its
+        centroid: its ``view``; a larger node's centroid is none of its eyes, and its view
+        only served the shooter test."""
         points, weights = eyes[0].cpu().numpy(), eyes[1].tolist()
         _, normal, tangent = self._placement(shooter)
-        # a one-element node's first eye is its centroid: the view's own row; a larger node's
-        # centroid is none of its eyes, and its view only served the shooter test
         first = 1 if len(self.patches.members(shooter)) == 1 else 0
-        F = self.shot_row(view, among, True) * weights[0] if first else torch.zeros_like(view.form_factors)
+        if first:
+            yield view, weights[0]
         for i in range(first, len(points)):
             if i + 1 < len(points):  # drawn while this one is used
                 self.renderer.prefetch_at(points[i + 1], normal, tangent)
-            F += weights[i] * self.shot_row(self.renderer.render_at(points[i], normal, tangent), among, True)
-        return F
+            yield self.renderer.render_at(points[i], normal, tangent), weights[i]
 
     def _emits(self, shooter: int) -> bool:
         """Whether an element of ``shooter`` emits, as ``shot_row`` asks it (pixel sums need
@@ -677,23 +686,25 @@ class ProgressiveSolver:
 
     def _make_group(self, nodes: dict[int, tuple[torch.Tensor | None, HemicubeView]]) -> GroupLight:
         """Start making a sweep group's rows and near fields: the ``nodes`` (node -> (row or
-        None, view)) without a row get one (``node_row``). Rows that draw (emitters' eyes) and
-        pixel sums are made here; the rows of small receivers and the near fields on the
-        worker thread, or this one where it would wait for them (``sweep.GroupLight``), which
-        touch no state of the solver: taken in by ``_join_group``."""
-        batch = {}  # node -> (view, pixel limit)
+        None, view)) without a row get one (``node_row``). The hemicubes (a lamp's eyes' too) are
+        drawn here, and rows of pixel sums made; the rows of small receivers (a lamp's, from
+        its eyes' views: ``sweep.group_light`` sums them) and the near fields on the worker
+        thread, or this one where it would wait for them (``sweep.GroupLight``), which touch
+        no state of the solver: taken in by ``_join_group``. Made here, a lamp's eyes' rows
+        held the drawing thread 0.2-0.3 s a solve on floating refined by the answer, while the
+        worker waited for its group."""
+        batch = {}  # node -> [(view, pixel limit, weight)]: its hemicube's, or its eyes'
         for node, (F, view) in nodes.items():
             if F is not None:
                 continue
-            if self._eyes(node) is not None:  # a row of several eyes' renders
-                F = self.node_row(node, view)
+            eyes = self._eyes(node)
+            limit = self._small_receiver_limit(True if eyes is not None else self._emits(node))
+            if limit is None:
+                F = self.node_row(node, view)  # pixel sums
             else:
-                emits = self._emits(node)
-                limit = self._small_receiver_limit(emits)
-                if limit is not None:
-                    batch[node] = (view, limit)
-                    continue
-                F = self.shot_row(view, None, emits)  # pixel sums
+                batch[node] = ([(v, limit, weight) for v, weight in self._eye_views(node, view, eyes)]
+                               if eyes is not None else [(view, limit, 1.0)])
+                continue
             self.rows.put(node, F)
             nodes[node] = (F, view)
         shooters = ({node: self._near_shooter(node, F, view) for node, (F, view) in nodes.items()}

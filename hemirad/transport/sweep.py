@@ -184,20 +184,27 @@ class SweepTransport:
         return incident + near @ torch.zeros_like(leaf_power).index_add_(0, self.column_of_leaf, leaf_power)
 
 
-def group_light(mesh: Mesh, small: dict[int, tuple[HemicubeView, float]], shooters: dict[int, NearShooter],
-                reach: float, totals: str) -> tuple[dict[int, torch.Tensor], dict[int, NearReceivers]]:
+def group_light(mesh: Mesh, small: dict[int, list[tuple[HemicubeView, float, float]]],
+                shooters: dict[int, NearShooter], reach: float, totals: str
+                ) -> tuple[dict[int, torch.Tensor], dict[int, NearReceivers]]:
     """What a sweep group's nodes send, made apart from the solver (on its worker thread):
-    the rows F_sj (T,) of the ``small`` nodes (node -> (view, pixel limit),
-    ``small_receiver_rows`` ``ROW_BATCH`` nodes a pass), then the near fields of the nodes of
-    ``shooters`` (node -> what ``nearfield`` needs of it; empty with ``reach`` 0), all
-    together (``nearfield.near_fields``), their ``form_factors`` None where ``small`` makes the
-    row. Returns the rows made and the near fields, by node."""
-    rows, small = {}, list(small.items())
-    for start in range(0, len(small), ROW_BATCH):
-        part = small[start:start + ROW_BATCH]
-        made = small_receiver_rows([view for _, (view, _) in part], mesh.corners, mesh.areas,
-                                   [limit for _, (_, limit) in part])
-        rows.update(zip([node for node, _ in part], made))
+    the rows F_sj (T,) of the ``small`` nodes (node -> its views, each (view, pixel limit,
+    weight): one view of weight 1, its hemicube's, or a lamp's eyes, whose rows the node's
+    sums by their weights), ``small_receiver_rows`` ``ROW_BATCH`` views a pass, then the
+    near fields of the nodes of ``shooters`` (node -> what ``nearfield`` needs of it; empty
+    with ``reach`` 0), all together (``nearfield.near_fields``), their ``form_factors`` None
+    where ``small`` makes the row. Returns the rows made and the near fields, by node."""
+    views = [(node, view, limit, weight) for node, made in small.items() for view, limit, weight in made]
+    rows: dict[int, torch.Tensor] = {}
+    for start in range(0, len(views), ROW_BATCH):
+        part = views[start:start + ROW_BATCH]
+        made = small_receiver_rows([view for _, view, _, _ in part], mesh.corners, mesh.areas,
+                                   [limit for _, _, limit, _ in part])
+        for (node, _, _, weight), row in zip(part, made):
+            if len(small[node]) == 1:
+                rows[node] = row
+            else:  # the eyes' rows summed in their order, as ``ProgressiveSolver.node_row`` sums them
+                rows.setdefault(node, torch.zeros_like(row)).add_(weight * row)
     if not shooters:
         return rows, {}
     made = [replace(s, form_factors=rows[node]) if s.form_factors is None else s for node, s in shooters.items()]
