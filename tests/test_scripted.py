@@ -55,10 +55,13 @@ def triangles(count: int, seed: int, offset: float = 0.0) -> torch.Tensor:
 def contour_and_lambert_factors() -> list[torch.Tensor]:
     sources, receivers = triangles(600, 0), triangles(600, 1, 0.3)
     receivers[:200] = sources[:200].roll(1, 1) * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)  # pairs that touch
-    point, normal = torch.tensor([0.4, 0.2, 0.1], dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    point = torch.tensor([0.4, 0.2, 0.1], dtype=torch.float64)
+    normal = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     corners = triangles(800, 2, -0.3)  # many cut by the point's tangent plane
-    points, normals = corners.mean(1, keepdim=True) + 0.05, torch.nn.functional.normalize(triangles(800, 3)[:, :1], dim=2)
-    return [analytic.triangle_to_triangles(sources, receivers, 4), analytic.triangle_to_triangles(sources, receivers, 5, pieces=False),
+    points = corners.mean(1, keepdim=True) + 0.05
+    normals = torch.nn.functional.normalize(triangles(800, 3)[:, :1], dim=2)
+    return [analytic.triangle_to_triangles(sources, receivers, 4),
+            analytic.triangle_to_triangles(sources, receivers, 5, pieces=False),
             analytic.point_to_triangles(point, normal, corners), analytic.point_to_triangles(points, normals, corners)]
 
 

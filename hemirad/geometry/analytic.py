@@ -105,7 +105,8 @@ def point_to_triangles(point: torch.Tensor, normal: torch.Tensor, triangles: tor
     d = _along(triangles - point, normal)  # (T, 3) heights above the tangent plane
     # most triangles lie wholly above: their three edges as they are (a third of the work of
     # the six slots clipping leaves)
-    out = _lambert_sum(point, normal, triangles, triangles.index_select(1, torch.tensor([1, 2, 0], device=triangles.device)))
+    following = triangles.index_select(1, torch.tensor([1, 2, 0], device=triangles.device))
+    out = _lambert_sum(point, normal, triangles, following)
     cut = torch.nonzero((d <= 0).any(1)).reshape(-1)
     n = cut.shape[0]
     if n == 0:

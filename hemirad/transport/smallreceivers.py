@@ -270,9 +270,9 @@ def _sample_weights(views: Sequence[HemicubeView], view_of: torch.Tensor, points
     pixels = pixels.index_select(0, other)
     direction = _per_resolution(view_of.index_select(0, other), resolutions, lambda R, rows: pixel_directions(
         R, points.device).index_select(1, _rows(pixels, rows)).T, (len(other), 3), points.dtype)
-    hidden = _hidden_samples(other, seen.index_select(0, other), owner.index_select(0, other), eyes.index_select(0, other),
-                             ray.index_select(0, other), frames.index_select(0, other), direction, first.points,
-                             first.normals, _TOLERANCE)
+    hidden = _hidden_samples(other, seen.index_select(0, other), owner.index_select(0, other),
+                             eyes.index_select(0, other), ray.index_select(0, other), frames.index_select(0, other),
+                             direction, first.points, first.normals, _TOLERANCE)
     return weight, weight.index_fill(0, hidden, 0.0)
 
 
@@ -298,7 +298,8 @@ def _hidden_samples(other: torch.Tensor, k: torch.Tensor, j: torch.Tensor, eye: 
     ``tolerance``, ``_TOLERANCE`` (a kernel takes no globals)."""
     normal_k = normals.index_select(0, k)
     toward = row_sums(normal_k * ray)  # n_k . ray
-    d_k = row_sums((points.index_select(0, k) - eye) * normal_k)  # the ray meets k's plane at d_k / toward of its length
+    # the ray meets k's plane at d_k / toward of its length
+    d_k = row_sums((points.index_select(0, k) - eye) * normal_k)
     crosses = (d_k * toward > 0) & (d_k.abs() < (1.0 - tolerance) * toward.abs())
     normal_j = normals.index_select(0, j)
     d_j = row_sums((points.index_select(0, j) - eye) * normal_j)  # < 0: the eye is in front of j
