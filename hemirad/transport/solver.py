@@ -698,7 +698,7 @@ class ProgressiveSolver:
             if F is not None:
                 continue
             eyes = self._eyes(node)
-            limit = self._small_receiver_limit(True if eyes is not None else self._emits(node))
+            limit = self._small_receiver_limit(self._emits(node))  # a node with eyes emits
             if limit is None:
                 F = self.node_row(node, view)  # pixel sums
             else:
