@@ -189,3 +189,22 @@ def test_guided_samples_read_the_same_error_with_less_spread():
                                      for seed in range(16)]) for guide in (None, result.error_guide()))
     assert float(guided.mean()) == pytest.approx(1.0, abs=0.05)
     assert float(guided.std()) < 0.6 * float(by_area.std())
+
+
+def test_points_over_the_surfaces_are_gathered_inside_their_elements():
+    """A ceiling 1 mm above the lamp: a ceiling point half a millimetre beside the lamp's rim
+    sees the lamp's back over much of its hemisphere, a dark band no view resolves, which a
+    point drawn on the rim's edge would report as the picture's error. The points drawn over
+    the surfaces lie ``EDGE_INSET`` inside their elements, as the pixels' do."""
+    ceiling = ("  - {type: quad, name: ceiling, material: floor, element_size: 0.2, "
+               "corners: [[-1, 1.001, -1], [1, 1.001, -1], [1, 1.001, 1], [-1, 1.001, 1]]}")
+    result = hemirad.solve(lamp_over_floor(0.25, 0, extra=ceiling))
+    down = [[0.0, -1.0, 0.0]] * 2
+    rim, away = final_gather(result.mesh, result.display_radiosity, [[0.2005, 1.001, 0.0], [0.3, 1.001, 0.0]],
+                             down).irradiance[:, 0]
+    assert float(rim) < 0.9 * float(away)  # measured: 0.063 against 0.074
+    mesh = result.mesh
+    element, coordinates, points, _ = sample_points(mesh, mesh.surface >= 0, 2000, seed=3)
+    assert float(coordinates.min()) >= EDGE_INSET - 1e-12
+    assert torch.allclose(coordinates.sum(1), torch.ones(len(element), dtype=torch.float64))
+    assert torch.allclose((mesh.corners[element] * coordinates[:, :, None]).sum(1), points)
