@@ -33,9 +33,11 @@ SIDE_SAMPLES = 16
 RISE = 10.0
 
 
-def crease_sides(corners: np.ndarray, triangles: np.ndarray, normals: np.ndarray, tolerance: float) -> np.ndarray:
+def crease_sides(corners: np.ndarray, triangles: np.ndarray, normals: np.ndarray, tolerance: float,
+                 asked: np.ndarray | None = None) -> np.ndarray:
     """(4,) bool: which sides of the quad (4, 3) ``corners`` (side k runs from corner k to
-    k + 1; the front by the right-hand rule over corners 0, 1, 2) are concave creases: at
+    k + 1; the front by the right-hand rule over corners 0, 1, 2), of those ``asked`` (4,)
+    bool (default all), are concave creases: at
     ``COVERED_SHARE`` of ``SIDE_SAMPLES`` points along the side, one of the triangles
     (K, 3, 3) of the other surfaces, unit ``normals`` (K, 3), holds both the point and the
     point ``RISE`` tolerances in front of the quad, and faces into the quad. A wall on a
@@ -43,7 +45,7 @@ def crease_sides(corners: np.ndarray, triangles: np.ndarray, normals: np.ndarray
     surfaces ``tolerance`` apart or more (a desk top a millimetre over its legs) are not."""
     sides = np.zeros(4, dtype=bool)
     t = (np.arange(SIDE_SAMPLES) + 0.5) / SIDE_SAMPLES
-    for k in range(4):
+    for k in np.flatnonzero(np.ones(4, dtype=bool) if asked is None else asked):
         a, b, d = corners[k], corners[(k + 1) % 4], corners[(k + 3) % 4]
         normal = cross3(b - a, d - a)
         length = float(np.linalg.norm(b - a))

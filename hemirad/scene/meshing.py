@@ -362,13 +362,13 @@ def _grade_creases(surfaces: list[_Surface]) -> list[_Surface]:
         if surface.quad is None:
             out.append(surface)
             continue
+        nu, nv = _quad_cells(surface.quad, surface.element_size)
+        long_enough = np.array([nu, nv, nu, nv]) >= CREASE_CELLS
         near = np.flatnonzero(overlapping(low, high, i, tolerance))
         quad = surface.quad.numpy()
         sides = crease_sides(quad, np.concatenate([corners[j] for j in near]).reshape(-1, 3, 3),
-                             np.concatenate([normals[j] for j in near]).reshape(-1, 3), tolerance) \
-            if len(near) else np.zeros(4, dtype=bool)
-        nu, nv = _quad_cells(surface.quad, surface.element_size)
-        sides &= np.array([nu, nv, nu, nv]) >= CREASE_CELLS
+                             np.concatenate([normals[j] for j in near]).reshape(-1, 3), tolerance, long_enough) \
+            if len(near) and long_enough.any() else np.zeros(4, dtype=bool)
         if not sides.any():
             out.append(surface)
             continue
