@@ -165,6 +165,20 @@ def test_coverage_tells_outside_and_inside_from_in_the_open():
     assert gather.irradiance[[0, 2]].abs().max() == 0
 
 
+def test_points_gathered_together_read_what_each_reads_alone():
+    """``final_gather`` draws the next point's hemicube while it sums one: every point still
+    reads its own view, bit for bit, repeated and neighbouring points included."""
+    mesh, faces = room_mesh(size=0.2)
+    radiosity = torch.rand(mesh.num_elements, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    points = [(1.0, 0.6, 0.5), (1.0, 0.6, 0.5), (0.3, 1.2, 0.8), (0.7, 0.0, 0.4), (1.0, 0.6, 0.5), (0.31, 1.2, 0.8)]
+    normals = [(0, 1, 0), (0, 1, 0), (0.3, -0.2, 0.9), (0, 1, 0), (0, -1, 0), (0.3, -0.2, 0.9)]
+    together = final_gather(mesh, radiosity, points, normals, resolution=32)
+    alone = [final_gather(mesh, radiosity, [p], [n], resolution=32) for p, n in zip(points, normals)]
+    for name in ("irradiance", "coverage", "front_coverage"):
+        assert torch.equal(getattr(together, name), torch.cat([getattr(a, name) for a in alone])), name
+    assert not torch.equal(together.irradiance[0], together.irradiance[4])  # the views differ
+
+
 def test_a_sensor_needs_a_normal():
     mesh = quads_mesh([LAMP], 0.5)
     with pytest.raises(ValueError, match="non-zero normal"):

@@ -225,7 +225,7 @@ class SolverOptions:
     error_samples: int = 1000
     # the same check at points the camera's pixels see, weighted as a per-pixel comparison
     # with a rendered reference weighs them (``Result.estimate_image_error``): stats.json's
-    # estimated_picture_error; 0 (the default): none, as it costs another 2-5 s
+    # estimated_picture_error; 0 (the default): none, as it costs another 1-4 s
     picture_error_samples: int = 0
     reconstruction: str = "quadratic"  # one of RECONSTRUCTION_CHOICES
 
