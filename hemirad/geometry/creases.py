@@ -45,7 +45,7 @@ def crease_sides(corners: np.ndarray, triangles: np.ndarray, normals: np.ndarray
     surfaces ``tolerance`` apart or more (a desk top a millimetre over its legs) are not."""
     sides = np.zeros(4, dtype=bool)
     t = (np.arange(SIDE_SAMPLES) + 0.5) / SIDE_SAMPLES
-    for k in np.flatnonzero(np.ones(4, dtype=bool) if asked is None else asked):
+    for k in range(4) if asked is None else np.flatnonzero(asked):
         a, b, d = corners[k], corners[(k + 1) % 4], corners[(k + 3) % 4]
         normal = cross3(b - a, d - a)
         length = float(np.linalg.norm(b - a))
