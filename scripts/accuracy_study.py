@@ -621,7 +621,9 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=None,
                         help="default: figures/ (with --quick: accuracy_quick/ in the current folder)")
     parser.add_argument("--quick", action="store_true", help="a smoke test: coarse, loose, two values per curve")
-    parser.add_argument("--save-rows", type=Path, default=None, help="also write every run's numbers as JSON here")
+    parser.add_argument("--save-rows", type=Path, default=None,
+                        help="where to write every run's numbers as JSON (default: beside the table, as "
+                             "accuracy.json or accuracy_converged.json)")
     parser.add_argument("--plot-only", type=Path, default=None,
                         help="redraw the table and figure from --save-rows JSON instead of solving")
     parser.add_argument("--converged", action="store_true",
@@ -652,8 +654,8 @@ def main(argv=None) -> int:
     if args.converged:
         out = args.out or ROOT / "figures"
         rows = json.loads(args.plot_only.read_text()) if args.plot_only else converged_study(args.scenes)
-        if args.save_rows:
-            args.save_rows.write_text(json.dumps(rows, indent=1) + "\n")
+        out.mkdir(parents=True, exist_ok=True)
+        _write_rows(args.save_rows or out / "accuracy_converged.json", rows)
         write_converged_table(out / "accuracy_converged.md", rows)
         write_figure(out / "accuracy_converged.png", rows)
         return 0
@@ -667,14 +669,19 @@ def main(argv=None) -> int:
         rows = json.loads(args.plot_only.read_text())
     else:
         rows = run_study(args.scenes, METHODS, settings, ELEMENT_SCALE, values)
-    if args.save_rows:
-        args.save_rows.write_text(json.dumps(rows, indent=1) + "\n")
     out = args.out or (Path("accuracy_quick") if args.quick else ROOT / "figures")
     out.mkdir(parents=True, exist_ok=True)
+    _write_rows(args.save_rows or out / "accuracy.json", rows)
     write_table(out / "accuracy.md", rows, settings, args)
     write_figure(out / "accuracy.png", rows)
     print(f"{len(rows)} runs in {time.perf_counter() - start:.0f} s; wrote {out / 'accuracy.md'} and accuracy.png")
     return 0
+
+
+def _write_rows(path: Path, rows: list[dict]) -> None:
+    """Every run's numbers as JSON: the table and figure are redrawn from them
+    (``--plot-only``), so they are written with every table, never left behind it."""
+    path.write_text(json.dumps(rows, indent=1) + "\n")
 
 
 if __name__ == "__main__":
