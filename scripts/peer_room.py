@@ -98,8 +98,13 @@ def main() -> None:
     parser.add_argument("--profile", action="store_true", help="print where the solve's time goes")
     parser.add_argument("--sort", default="tottime", help="the profile's order (pstats keys: tottime, cumulative, ...)")
     args = parser.parse_args()
-    scene_path = args.room / args.scene if args.scene else next(args.room.glob("*.yaml"))
-    points_path = args.points or next(p for p in sorted(args.room.parent.glob("*.npz")))
+    scene_path = args.room / args.scene if args.scene else next(iter(sorted(args.room.glob("*.yaml"))), None)
+    points_path = args.points or next(iter(sorted(args.room.parent.glob("*.npz"))), None)
+    if scene_path is None or not scene_path.is_file():
+        parser.error(f"no scene file {scene_path or args.room / '*.yaml'}: ROOM is the folder of the scene "
+                     f"(for RRV's room3, room3_hemirad), or name it with --scene")
+    if points_path is None or not points_path.is_file():
+        parser.error(f"no points file {points_path or args.room.parent / '*.npz'}: the .npz beside ROOM, or --points")
     r = measure(scene_path, points_path, args)
     print(f"{scene_path}: {r['elements']:,} elements, {r['patches']} patches")
     print(f"converged to {r['unshot']:.1e} unshot in {r['seconds']:.1f} s: {r['shots']:,} shots, "
