@@ -12,9 +12,10 @@ from hemirad.adaptive.shooter_split import point_source_test
 from hemirad.assembly import NEAR_REACH, emitter_eye_level, make_solver
 from hemirad.core.colour import luminance
 from hemirad.core.errors import HemiradWarning
+from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patches import build_patches, element_sides, plane_axes
 from hemirad.lighting.photometry import emission_table
-from hemirad.scene.meshing import build_mesh
+from hemirad.scene.meshing import build_mesh, grid_quad
 from hemirad.transport.shooters import PatchShooters, back_face_share, either, eye_points, hidden_centroid_test
 from hemirad.transport.solver import ProgressiveSolver
 
@@ -49,6 +50,22 @@ def test_patches_tile_each_plane_and_their_trees_reach_every_element():
         centroid = (mesh.centroids[members] * areas[:, None]).sum(0) / areas.sum()
         torch.testing.assert_close(tree.centroid[root], centroid)
     assert np.allclose(element_sides(mesh), 0.25)
+
+
+def test_a_plane_takes_the_patch_size_asked_over_most_of_its_area():
+    # a 1 m square of 0.25 m cells with a 5 cm strip of 2.5 cm cells along one side, one
+    # surface: the strip's many small elements must not set the plane's grid (by count they
+    # are five in six of its elements, by area a twentieth)
+    square, square_triangles = grid_quad(quad((0, 0, 0), (1, 0, 0), (0, 1, 0)), 0.25)
+    strip, strip_triangles = grid_quad(quad((0, 1, 0), (1, 0, 0), (0, 0.05, 0)), 0.025)
+    triangles = torch.cat([torch.as_tensor(square_triangles), torch.as_tensor(strip_triangles) + len(square)])
+    zeros = torch.zeros(len(triangles), dtype=torch.int64)
+    mesh = Mesh(torch.cat([torch.as_tensor(square), torch.as_tensor(strip)]), triangles, zeros, zeros, ["floor"])
+    assert len(torch.unique(mesh.plane_ids)) == 1
+    tree = build_patches(mesh, 2 * element_sides(mesh))  # auto patches: two element sides
+    in_square = mesh.centroids[:, 1] < 1.0
+    assert len(torch.unique(tree.patch[in_square])) == 4  # its 2 x 2 cells of 0.5 m, not 32 of 5 cm
+    assert len(torch.unique(tree.patch[~in_square])) == 2  # the strip along the cells it crosses
 
 
 def test_a_nodes_members_and_their_counts_follow_the_receivers_splits():
@@ -465,7 +482,7 @@ def test_auto_patches_refined_by_the_answer_are_capped_by_the_scene_size():
     # the answer they are at most AUTO_PATCH_SCENE of the room's 2.7 m height, and a length
     # the scene asks for is kept as asked.
     from hemirad.assembly import AUTO_PATCH_SCENE, make_patches
-    from hemirad.scene.meshing import build_mesh
+    from hemirad.scene.meshing import build_mesh, grid_quad
 
     def widest(scene) -> float:
         mesh = build_mesh(scene)

@@ -106,7 +106,7 @@ def build_patches(mesh: Mesh, patch_size: np.ndarray, owner: np.ndarray | None =
                   apart: np.ndarray | None = None) -> PatchTree:
     """Group the elements of ``mesh`` into patches of about ``patch_size`` (T,) (a side length
     per element, 0 for an element that shoots on its own; a plane takes its elements'
-    median) and build each patch's quadrant tree. ``owner`` (T,): the object each element
+    median by area) and build each patch's quadrant tree. ``owner`` (T,): the object each element
     belongs to (default: its surface); a curved patch shoots as one only where no other
     object passes through it (``_curved_cells``). ``apart`` (T,) int: elements of different
     values never share a patch (default: all 0; ``rim_runs`` gives a footprint's sides)."""
@@ -188,7 +188,7 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
                  ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], np.ndarray]:
     """The patches of the planes, as (members (k,), plane axes u, v): per plane, the elements
     whose centroids share a cell of the plane's square grid (its side the plane's median patch
-    size, its origin the lowest element centroid) and a value of ``apart`` (T,); and (m,) the
+    size by area (``_median_patch_size``), its origin the lowest element centroid) and a value of ``apart`` (T,); and (m,) the
     elements alone on their plane (those of curved surfaces), left to ``_curved_cells``."""
     order = np.argsort(plane_ids, kind="stable")
     bounds = np.flatnonzero(np.diff(plane_ids[order])) + 1
@@ -198,7 +198,7 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
             alone.append(members)
             continue
         u, v = (axis[0] for axis in _mean_plane_axes(members, normals, areas))
-        size = float(np.median(patch_size[members]))
+        size = _median_patch_size(patch_size[members], areas[members])
         if size <= 0:  # patches turned off
             out += _each_alone(members, normals)
             continue
@@ -221,16 +221,27 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
     return out, np.concatenate(alone) if alone else np.zeros(0, dtype=np.int64)
 
 
+def _median_patch_size(sizes: np.ndarray, areas: np.ndarray) -> float:
+    """The patch side of a plane's (or a curved object's) elements from their ``sizes`` (k,):
+    the median weighted by ``areas`` (k,), the size asked for over half their area. Weighted by count, the
+    strips along its creases and round its footprints, many and thin, set it (office's floor
+    from the shipped sizes x2: 0.29 m against the 0.41 m asked for over most of its area, and
+    274 patches instead of 150)."""
+    order = np.argsort(sizes, kind="stable")
+    cumulative = np.cumsum(areas[order])
+    return float(sizes[order][min(np.searchsorted(cumulative, 0.5 * cumulative[-1]), len(order) - 1)])
+
+
 def _curved_cells(members: np.ndarray, owner: np.ndarray, centroids: np.ndarray, normals: np.ndarray,
                   areas: np.ndarray, corners: np.ndarray, patch_size: np.ndarray
                   ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The patches of curved surfaces from their (m,) elements, each alone on its plane: per
-    object (``owner`` (T,)), caps (``_caps``) on a grid of side the object's median patch size."""
+    object (``owner`` (T,)), caps (``_caps``) on a grid of side the object's median patch size by area."""
     out = []
     low, high = corners.min(1), corners.max(1)  # (T, 3) each element's bounding box
     for s in np.unique(owner[members]):
         group = members[owner[members] == s]
-        size = float(np.median(patch_size[group]))
+        size = _median_patch_size(patch_size[group], areas[group])
         if size <= 0:  # patches turned off: every element shoots alone
             out += _each_alone(group, normals)
         else:
