@@ -91,6 +91,7 @@ def test_a_prefetched_hemicube_is_the_one_rendered_when_asked_for():
 def _solve_office_in_sweeps(cache_mb: float | None = None) -> ProgressiveSolver:
     scene = hemirad.load_scene("office")
     scene.solver.resolution, scene.solver.unshot_fraction = 64, 1e-2
+    scene.solver.patch_size = 0.4  # a floor patch then straddles a footprint and shoots from its quadrants
     if cache_mb is not None:
         scene.solver.cache_mb = cache_mb
     solver = make_solver(scene)
