@@ -304,10 +304,11 @@ def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -
     boundary loop is a hole where it runs clockwise seen from the surface's front (its
     signed area, sum (a x b) . n over its edges as the triangles give them, is negative); the
     outline runs counter-clockwise. With ``least`` (T,), only the holes whose rim is at least as long as
-    the median of ``least`` over the surface's elements."""
+    the median of ``least`` over the surface's elements by area (as its patch grid takes it)."""
     triangles = mesh.triangles.cpu().numpy()
     vertices = mesh.vertices.cpu().numpy()
     normals = mesh.normals.cpu().numpy()
+    areas = mesh.areas.cpu().numpy()
     surface = mesh.surface.cpu().numpy()
     runs = np.zeros(len(triangles), dtype=np.int64)
     cos_turn = np.cos(np.radians(turn))
@@ -333,7 +334,7 @@ def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -
         area, perimeter = np.zeros(count), np.zeros(count)
         np.add.at(area, loop, signed)
         np.add.at(perimeter, loop, np.linalg.norm(vertices[b] - vertices[a], axis=1))
-        shortest = 0.0 if least is None else float(np.median(least[own]))
+        shortest = 0.0 if least is None else _median_patch_size(least[own], areas[own])
         for hole in np.flatnonzero((area < 0) & (perimeter >= shortest)):
             edges = np.flatnonzero(loop == hole)
             touching = np.isin(triangles[own], ends[label == hole]).any(1)  # a corner on this rim
