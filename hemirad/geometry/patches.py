@@ -188,8 +188,9 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
                  ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], np.ndarray]:
     """The patches of the planes, as (members (k,), plane axes u, v): per plane, the elements
     whose centroids share a cell of the plane's square grid (its side the plane's median patch
-    size by area (``_median_patch_size``), its origin the lowest element centroid) and a value of ``apart`` (T,); and (m,) the
-    elements alone on their plane (those of curved surfaces), left to ``_curved_cells``."""
+    size by area, ``_median_patch_size``; its origin the lowest element centroid) and a value
+    of ``apart`` (T,); and (m,) the elements alone on their plane (those of curved surfaces),
+    left to ``_curved_cells``."""
     order = np.argsort(plane_ids, kind="stable")
     bounds = np.flatnonzero(np.diff(plane_ids[order])) + 1
     out, alone = [], []
@@ -223,10 +224,10 @@ def _plane_cells(plane_ids: np.ndarray, centroids: np.ndarray, normals: np.ndarr
 
 def _median_patch_size(sizes: np.ndarray, areas: np.ndarray) -> float:
     """The patch side of a plane's (or a curved object's) elements from their ``sizes`` (k,):
-    the median weighted by ``areas`` (k,), the size asked for over half their area. Weighted by count, the
-    strips along its creases and round its footprints, many and thin, set it (office's floor
-    from the shipped sizes x2: 0.29 m against the 0.41 m asked for over most of its area, and
-    274 patches instead of 150)."""
+    the median weighted by ``areas`` (k,), the size asked for over half their area. Weighted
+    by count, the strips along its creases and round its footprints, many and thin, set it
+    (office's floor from the shipped sizes x2: 0.29 m against the 0.41 m asked for over most
+    of its area, and 274 patches instead of 150)."""
     order = np.argsort(sizes, kind="stable")
     cumulative = np.cumsum(areas[order])
     return float(sizes[order][min(np.searchsorted(cumulative, 0.5 * cumulative[-1]), len(order) - 1)])
@@ -236,7 +237,8 @@ def _curved_cells(members: np.ndarray, owner: np.ndarray, centroids: np.ndarray,
                   areas: np.ndarray, corners: np.ndarray, patch_size: np.ndarray
                   ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The patches of curved surfaces from their (m,) elements, each alone on its plane: per
-    object (``owner`` (T,)), caps (``_caps``) on a grid of side the object's median patch size by area."""
+    object (``owner`` (T,)), caps (``_caps``) on a grid of side the object's median patch size
+    by area."""
     out = []
     low, high = corners.min(1), corners.max(1)  # (T, 3) each element's bounding box
     for s in np.unique(owner[members]):
@@ -303,8 +305,9 @@ def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -
     corner of the footprint), on the rims of two holes, or on a rim that is not one loop. A
     boundary loop is a hole where it runs clockwise seen from the surface's front (its
     signed area, sum (a x b) . n over its edges as the triangles give them, is negative); the
-    outline runs counter-clockwise. With ``least`` (T,), only the holes whose rim is at least as long as
-    the median of ``least`` over the surface's elements by area (as its patch grid takes it)."""
+    outline runs counter-clockwise. With ``least`` (T,), only the holes whose rim is at least
+    as long as the median of ``least`` over the surface's elements by area (as its patch grid
+    takes it)."""
     triangles = mesh.triangles.cpu().numpy()
     vertices = mesh.vertices.cpu().numpy()
     normals = mesh.normals.cpu().numpy()
