@@ -482,7 +482,6 @@ def test_auto_patches_refined_by_the_answer_are_capped_by_the_scene_size():
     # the answer they are at most AUTO_PATCH_SCENE of the room's 2.7 m height, and a length
     # the scene asks for is kept as asked.
     from hemirad.assembly import AUTO_PATCH_SCENE, make_patches
-    from hemirad.scene.meshing import build_mesh, grid_quad
 
     def widest(scene) -> float:
         mesh = build_mesh(scene)
