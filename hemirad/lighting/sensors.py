@@ -99,12 +99,7 @@ def final_gather(mesh: Mesh, radiosity: torch.Tensor, points, normals, resolutio
     front_coverage = torch.zeros(len(points), dtype=torch.float64)
     # as in a solve: beside a software renderer, a second torch thread only fights it for the cores
     with torch_threads(1 if GLContext.is_software() else torch.get_num_threads()):
-        if len(points):
-            renderer.prefetch_at(points[0], normals[0], OFF_AXIS_TANGENT)
-        for i, (point, normal) in enumerate(zip(points, normals)):
-            if i + 1 < len(points):  # drawn while this point's hemicube is summed
-                renderer.prefetch_at(points[i + 1], normals[i + 1], OFF_AXIS_TANGENT)
-            view = renderer.render_at(point, normal, OFF_AXIS_TANGENT)
+        for i, view in enumerate(renderer.views_at(points, normals, OFF_AXIS_TANGENT)):
             irradiance[i] = (view.form_factors @ radiosity).cpu()
             front_coverage[i] = float(view.form_factors.sum())
             coverage[i] = front_coverage[i] + float(view.back_share)  # every pixel that sees a face

@@ -1,6 +1,8 @@
 """Hemicubes of a mesh's elements, rendered and turned into ``HemicubeView`` records."""
 from __future__ import annotations
 
+from typing import Iterator
+
 import numpy as np
 import torch
 
@@ -106,6 +108,19 @@ class HemicubeRenderer:
             return self._view(*self._ready.pop(key))
         eye, frame = self._submit(point, normal, tangent)
         return self._view(self.hemicube.collect(), eye, frame)
+
+    def views_at(self, points: np.ndarray, normals: np.ndarray, tangents: np.ndarray) -> Iterator[HemicubeView]:
+        """``render_at`` for each of the (N, 3) ``points``, in order, with its (N, 3) ``normals``
+        and ``tangents`` (or one (3,) each for all), the next one drawn (``prefetch_at``) while
+        the caller uses this one."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        normals, tangents = (np.broadcast_to(np.asarray(x, dtype=np.float64), points.shape) for x in (normals, tangents))
+        if len(points):
+            self.prefetch_at(points[0], normals[0], tangents[0])
+        for i in range(len(points)):
+            if i + 1 < len(points):
+                self.prefetch_at(points[i + 1], normals[i + 1], tangents[i + 1])
+            yield self.render_at(points[i], normals[i], tangents[i])
 
     def _submit(self, point: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Draw the hemicube at this placement (``Hemicube.submit``) and return its eye and

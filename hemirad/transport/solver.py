@@ -646,10 +646,7 @@ class ProgressiveSolver:
         first = 1 if len(self.patches.members(shooter)) == 1 else 0
         if first:
             yield view, weights[0]
-        for i in range(first, len(points)):
-            if i + 1 < len(points):  # drawn while this one is used
-                self.renderer.prefetch_at(points[i + 1], normal, tangent)
-            yield self.renderer.render_at(points[i], normal, tangent), weights[i]
+        yield from zip(self.renderer.views_at(points[first:], normal, tangent), weights[first:])
 
     def _emits(self, shooter: int) -> bool:
         """Whether an element of ``shooter`` emits, as ``shot_row`` asks it (pixel sums need
