@@ -44,6 +44,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 26: refinement judged on the answer ranks the elements by their error over the three
+#: colour channels, not by luminance;
 #: 25: a round of refinement by the answer grows the mesh no more than its fresh solve's kept
 #: light is predicted to fit ``solver.cache_mb`` (``answer.memory_growth``), and lamps whose
 #: elements are small beside the scene shoot without eyes (``assembly.emitter_eye_level``);
@@ -70,7 +72,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 25
+ARITHMETIC = 26
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
