@@ -13,7 +13,7 @@ from hemirad.core.device import DEVICES, DEVICE_NAMES, is_device_name
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.patterns import PATTERN_CHOICES, describe_patterns
 from hemirad.scene.loader import MAX_SURFACE_NAME, MAX_TRIANGLES, bundled_scenes, load_scene
-from hemirad.scene.model import CRITERION_NAMES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES
+from hemirad.scene.model import CRITERION_NAMES, IMPORTANCE_CHOICES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES
 from hemirad.scene.options import MAX_CACHE_MB, MAX_ROUND_GROWTH
 from hemirad.scene.sensorfile import read_sensor_file
 
@@ -192,6 +192,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="criterion answer: the most one refinement may grow the elements; smaller rounds "
                              "cost more solves and find more of what a coarse solve cannot see "
                              "(refine.round_growth, default 5.5)")
+    refine.add_argument("--importance", choices=IMPORTANCE_CHOICES,
+                        help="criterion answer: weigh an element's error by how much of the camera's picture it "
+                             "fills (camera) or by its area alone (surfaces); auto: camera unless the scene has "
+                             "sensors or grids (refine.importance)")
     pictures = parser.add_argument_group("pictures")
     pictures.add_argument("--falsecolour", action="append", type=_surface_name, metavar="SURFACE",
                           help="also write falsecolour_SURFACE.png, the light falling on that surface (e.g. "
@@ -264,7 +268,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
                       "relative": ("--relative" if args.relative else "--absolute", args.relative),
                       "max_depth": ("--max-depth", args.max_depth), "max_elements": ("--max-elements", args.max_elements),
                       "shots": ("--refine-shots", args.refine_shots), "tolerance": ("--tolerance", args.tolerance),
-                      "rounds": ("--rounds", args.rounds), "round_growth": ("--round-growth", args.round_growth)}
+                      "rounds": ("--rounds", args.rounds), "round_growth": ("--round-growth", args.round_growth),
+                      "importance": ("--importance", args.importance)}
     for block, options in (("solver", solver_options), ("refine", refine_options)):
         given = {k: v for k, (_, v) in options.items() if v is not None}
         setattr(scene, block, replace(getattr(scene, block), **given))

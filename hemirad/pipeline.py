@@ -39,12 +39,13 @@ from hemirad.lighting import photometry, survey
 from hemirad.lighting.grids import MAX_GRID_POINTS, grid_counts, grid_spacing
 from hemirad.lighting.sensors import SENSOR_RESOLUTION, irradiance_at
 from hemirad.output import display, export, falsecolour, gltf
+from hemirad.output.importance import view_importance
 from hemirad.output.meshview import pick_surface, surface_view
 from hemirad.output.reconstruction import reconstructed_vertex_values
 from hemirad.output.render import render_view
 from hemirad.output.shading import Shading, picture_shading
 from hemirad.scene.meshing import build_mesh
-from hemirad.scene.model import ANSWER, Camera, Scene
+from hemirad.scene.model import ANSWER, CAMERA_IMPORTANCE, Camera, Scene
 from hemirad.transport.gl import GLContext, check_image_size
 from hemirad.transport.solver import ProgressiveSolver, ShotReport, ambient_term
 
@@ -621,6 +622,15 @@ def _picture(scene: Scene) -> Display:
     return lambda mesh, values: picture_shading(mesh, values, scene.solver.reconstruction)
 
 
+def ranking_importance(scene: Scene) -> Callable[[Mesh], torch.Tensor] | None:
+    """What the answer's ranking weighs an element's error by beside its area
+    (``refine.importance``): how much of the scene camera's picture it fills, or None."""
+    if scene.refine_importance != CAMERA_IMPORTANCE:
+        return None
+    camera = scene.camera
+    return lambda mesh: view_importance(mesh, camera)
+
+
 def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: "_CheckpointWriter | None",
                       run: dict | None, path, estimate: "_ErrorEstimate") -> tuple[list[RoundReport], Refiner]:
     """Shoot to the stopping rule and refine where the answer is worst, in rounds
@@ -658,7 +668,7 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
                      lambda: solver.run(options.max_shots, options.unshot_fraction, shot_done),
                      report=None if saver is None else (lambda _: saver.save()), reports=reports,
                      patches_for=lambda: refined_patches(scene, solver), estimate=stopping_estimate,
-                     display=shown)
+                     display=shown, importance=ranking_importance(scene))
     return reports, refiner
 
 
@@ -767,6 +777,7 @@ def _stats(scene: Scene, solver: ProgressiveSolver, final: Mesh, initial_element
                    "threshold": scene.refine.threshold, "relative": scene.refine.relative,
                    "absolute_threshold": refiner.threshold if refiner else None,
                    "splits": refiner.splits if refiner else 0, "tolerance": scene.refine.tolerance if scene.refines_by_answer else None,
+                   "importance": scene.refine_importance if scene.refines_by_answer else None,
                    "rounds": [dataclasses.asdict(r) for r in rounds] if rounds is not None else None},
         "largest_angle_degrees": angle_quality(final),
         "emitted_power": solver.emitted_power.tolist(),

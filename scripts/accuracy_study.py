@@ -42,7 +42,7 @@ from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver, refined_patches
 from hemirad.evaluation import metrics, reference
 from hemirad.output.shading import picture_shading
-from hemirad.pipeline import Result
+from hemirad.pipeline import Result, ranking_importance
 from hemirad.scene.meshing import build_mesh
 from hemirad.scene.model import ANSWER
 from hemirad.transport.gl import GLContext
@@ -338,7 +338,8 @@ def _answer_run(name, shipped, comparison, factor: float, rounds: int, budget: i
 
     try:
         refine_by_answer(solver, refiner, scene.refine.max_elements, tolerance, rounds, shoot_on,
-                         patches_for=lambda: refined_patches(scene, solver), display=picture_shading)
+                         patches_for=lambda: refined_patches(scene, solver), display=picture_shading,
+                         importance=ranking_importance(scene))
     finally:
         solver.close()
     if not every_round:

@@ -9,7 +9,8 @@ import torch
 import yaml
 
 import hemirad
-from hemirad.evaluation.gathered_error import EDGE_INSET, GUIDE_SHARE, gathered_error, image_gathered_error, pixel_points, sample_points
+from hemirad.evaluation.gathered_error import EDGE_INSET, GUIDE_SHARE, gathered_error, image_gathered_error, sample_points
+from hemirad.output.render import pixel_points
 from hemirad.geometry.mesh import barycentric
 from hemirad.geometry.analytic import point_to_polygon
 from hemirad.lighting.sensors import final_gather

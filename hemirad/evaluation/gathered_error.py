@@ -33,7 +33,6 @@ not sampled.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -43,7 +42,7 @@ import torch
 from hemirad.core.colour import luminance
 from hemirad.geometry.mesh import Mesh, barycentric
 from hemirad.lighting.sensors import final_gather
-from hemirad.output.render import render_view
+from hemirad.output.render import pixel_points
 from hemirad.output.shading import Shading, picture_shading
 from hemirad.scene.model import Camera
 
@@ -166,33 +165,6 @@ def gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, 
     element, coordinates, points, weights = sample_points(mesh, among, samples, seed, guide)
     return _compare(mesh, radiosity, emission, reflectance, element, coordinates, points, weights, resolution,
                     shading)
-
-
-def pixel_points(mesh: Mesh, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
-    """The surface point each pixel's centre sees.
-
-    Returns:
-        (H * W,) the element each pixel sees (-1: none), row by row from the top, and
-        (H * W, 3) float64 the point (on the element's plane).
-    """
-    mesh = mesh.to("cpu")
-    T = mesh.num_elements
-    # each element drawn with its own three vertices, so a vertex value is the element's:
-    # its index (exact in float32 below 2^24), and the corners' offsets from the eye
-    unshared = Mesh(mesh.corners.reshape(-1, 3), torch.arange(3 * T).reshape(T, 3), mesh.surface, mesh.material,
-                    mesh.surface_names, mesh.level)
-    flat = dataclasses.replace(camera, supersample=1)  # pixel centres: one surface each
-    number = torch.arange(1, T + 1, dtype=torch.float64).repeat_interleave(3)
-    ids = render_view(unshared, torch.stack([number, torch.zeros_like(number), torch.zeros_like(number)], 1), flat)
-    element = torch.as_tensor(np.rint(ids[..., 0]).astype(np.int64)).reshape(-1) - 1
-    eye = torch.tensor(camera.position, dtype=torch.float64)
-    offsets = torch.as_tensor(render_view(unshared, unshared.vertices - eye, flat), dtype=torch.float64).reshape(-1, 3)
-    points = eye + offsets
-    seen = element >= 0
-    # onto the element's plane, undoing the float32 of the render
-    c0, n = mesh.corners[element[seen], 0], mesh.normals[element[seen]]
-    points[seen] -= ((points[seen] - c0) * n).sum(1, keepdim=True) * n
-    return element, points
 
 
 def image_gathered_error(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, reflectance: torch.Tensor,

@@ -1,4 +1,5 @@
-"""Camera views of the solved mesh: Gouraud-shaded per-vertex radiosity through OpenGL.
+"""Camera views of the solved mesh: Gouraud-shaded per-vertex radiosity through OpenGL, and
+the element and point each pixel's centre sees.
 
 The image is linear radiosity (no exposure, no sRGB); ``display.to_srgb8`` encodes it.
 Antialiasing renders ``supersample`` times larger into a float framebuffer and box-filters
@@ -7,6 +8,7 @@ and resolves in an unspecified way).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import weakref
 
@@ -242,3 +244,44 @@ def _draw(ctx, program, positions: np.ndarray, colors: np.ndarray, indices: np.n
         for resource in reversed(resources):
             resource.release()
     return raw
+
+
+def pixel_elements(mesh: Mesh, camera: Camera) -> torch.Tensor:
+    """(H * W,) int64 the element each pixel's centre sees (-1: none), row by row from the top."""
+    unshared, flat = _unshared(mesh.to("cpu")), _centres(camera)
+    number = torch.arange(1, mesh.num_elements + 1, dtype=torch.float64).repeat_interleave(3)
+    ids = render_view(unshared, torch.stack([number, torch.zeros_like(number), torch.zeros_like(number)], 1), flat)
+    return torch.as_tensor(np.rint(ids[..., 0]).astype(np.int64)).reshape(-1) - 1
+
+
+def _unshared(mesh: Mesh) -> Mesh:
+    """``mesh`` with each element drawn with its own three vertices, so that a vertex value
+    is the element's: its index (exact in float32 below 2^24), its corners' offsets."""
+    T = mesh.num_elements
+    return Mesh(mesh.corners.reshape(-1, 3), torch.arange(3 * T).reshape(T, 3), mesh.surface, mesh.material,
+                mesh.surface_names, mesh.level)
+
+
+def _centres(camera: Camera) -> Camera:
+    """``camera`` drawing pixel centres: one surface each."""
+    return dataclasses.replace(camera, supersample=1)
+
+
+def pixel_points(mesh: Mesh, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """The surface point each pixel's centre sees.
+
+    Returns:
+        (H * W,) the element each pixel sees (-1: none), row by row from the top
+        (``pixel_elements``), and (H * W, 3) float64 the point (on the element's plane).
+    """
+    mesh = mesh.to("cpu")
+    element = pixel_elements(mesh, camera)
+    unshared, flat = _unshared(mesh), _centres(camera)
+    eye = torch.tensor(camera.position, dtype=torch.float64)
+    offsets = torch.as_tensor(render_view(unshared, unshared.vertices - eye, flat), dtype=torch.float64).reshape(-1, 3)
+    points = eye + offsets
+    seen = element >= 0
+    # onto the element's plane, undoing the float32 of the render
+    c0, n = mesh.corners[element[seen], 0], mesh.normals[element[seen]]
+    points[seen] -= ((points[seen] - c0) * n).sum(1, keepdim=True) * n
+    return element, points

@@ -29,6 +29,11 @@ AUTO_CRITERION = "auto"
 CRITERION_NAMES = SHOT_CRITERION_NAMES + (ANSWER, AUTO_CRITERION)
 #: The criterion ``auto`` means where every element shoots (and for a refiner without a scene).
 PAPER_CRITERION = "gradient"
+#: What a scene's ``refine.importance`` (and ``--importance``) may be: weigh an element's
+#: error by the pixels per unit area the camera gives it, by nothing beside its area, or
+#: ``auto``: the camera unless the scene has sensors or grids (``Scene.refine_importance``).
+CAMERA_IMPORTANCE, SURFACES_IMPORTANCE, AUTO_IMPORTANCE = "camera", "surfaces", "auto"
+IMPORTANCE_CHOICES = (AUTO_IMPORTANCE, CAMERA_IMPORTANCE, SURFACES_IMPORTANCE)
 
 
 #: The emission a material may have, besides 0: radiosity (up to emission / (1 - reflectance),
@@ -269,6 +274,11 @@ class RefineOptions:
     # fewer solves, more, smaller ones find what the coarser solves could not see (a contact
     # line's floor): ``adaptive.answer.ROUND_GROWTH``
     round_growth: float = 5.5
+    # criterion "answer": what an element's error is weighed by beside its area, one of
+    # IMPORTANCE_CHOICES: the pixels per unit area the scene's camera gives it (``camera``,
+    # ``output.importance``), or nothing (``surfaces``); auto: camera unless the scene has
+    # sensors or grids, whose light on the surfaces is what it is for
+    importance: str = AUTO_IMPORTANCE
 
     @property
     def enabled(self) -> bool:
@@ -385,6 +395,15 @@ class Scene:
         size; refinement resolves it."""
         contacts = self.meshing.contacts
         return (self.solver.shoots_patches or self.refines_by_answer) if contacts == "auto" else bool(contacts)
+
+    @property
+    def refine_importance(self) -> str:
+        """``refine.importance`` made definite: ``auto`` is ``camera`` unless the scene has
+        sensors or grids (README, Refinement judged on the answer)."""
+        importance = self.refine.importance
+        if importance != AUTO_IMPORTANCE:
+            return importance
+        return SURFACES_IMPORTANCE if (self.sensors or self.grids) else CAMERA_IMPORTANCE
 
     @property
     def meshes_creases(self) -> bool:

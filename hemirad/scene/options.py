@@ -6,7 +6,7 @@ import numpy as np
 from hemirad.core.device import DEVICE_NAMES, is_device_name
 from hemirad.geometry.patterns import PATTERN_CHOICES
 from hemirad.scene.keys import Checker
-from hemirad.scene.model import (CRITERION_NAMES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES, Camera, MeshingOptions, RefineOptions,
+from hemirad.scene.model import (CRITERION_NAMES, IMPORTANCE_CHOICES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES, Camera, MeshingOptions, RefineOptions,
                                  SolverOptions)
 
 #: The most ``solver.emitter_eyes`` levels: 256 hemicubes per emitting element.
@@ -23,7 +23,8 @@ _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "reflector_resolut
                 "error_samples", "picture_error_samples", "reconstruction")
 _MESHING_KEYS = ("contacts", "creases", "intersections")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
-                "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds", "round_growth")
+                "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds", "round_growth",
+                "importance")
 
 
 def read_camera(check: Checker, v) -> Camera:
@@ -167,6 +168,8 @@ def read_refine(check: Checker, v) -> RefineOptions:
         opts.round_growth = check.bounded(m["round_growth"], "refine.round_growth",
                                           f"a number above 1 and at most {MAX_ROUND_GROWTH:g}, such as 2.5",
                                           lambda x: 1 < x <= MAX_ROUND_GROWTH)
+    if "importance" in m:
+        opts.importance = check.choice(m["importance"], "refine.importance", IMPORTANCE_CHOICES)
     if not (opts.interior or opts.shadow_edges):
         check.fail("refine.interior", "at least one of interior and shadow_edges to be true", False)
     return opts

@@ -45,7 +45,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
 #: 26: refinement judged on the answer ranks the elements by their error over the three
-#: colour channels, not by luminance;
+#: colour channels, not by luminance, weighed by the camera's pixels (refine.importance), and
+#: sizes a round for 0.8 of its tolerance;
 #: 25: a round of refinement by the answer grows the mesh no more than its fresh solve's kept
 #: light is predicted to fit ``solver.cache_mb`` (``answer.memory_growth``), and lamps whose
 #: elements are small beside the scene shoot without eyes (``assembly.emitter_eye_level``);
