@@ -361,10 +361,10 @@ def _goal_lines(rows: list[dict]) -> list[str]:
         met = (goal["relative_mse"] <= finest["relative_mse"] and 3 * goal["elements"] <= finest["elements"]
                and 2 * goal["seconds"] <= finest["seconds"])
         kind = "a third of its elements" if goal["method"] == GOAL else "its error as the tolerance"
-        lines += [f"Goal, {kind}, from x{goal['value']:g} ({'met' if met else 'not met'}): relMSE {goal['relative_mse']:.5f} "
-                  f"against the finest uniform mesh's {finest['relative_mse']:.5f}, with "
-                  f"{goal['elements'] / finest['elements']:.0%} of its elements in "
-                  f"{goal['seconds'] / finest['seconds']:.0%} of its seconds.", ""]
+        lines += [f"Goal, {kind}, from x{goal['value']:g} ({'met' if met else 'not met'}): relMSE {goal['relative_mse']:.7f} "
+                  f"({goal['relative_mse'] / finest['relative_mse']:.2f}x the finest uniform mesh's "
+                  f"{finest['relative_mse']:.7f}), with {goal['elements'] / finest['elements']:.0%} of its elements in "
+                  f"{goal['seconds'] / finest['seconds']:.1%} of its seconds.", ""]
     return lines
 
 
