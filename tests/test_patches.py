@@ -479,25 +479,37 @@ def test_an_object_can_set_its_own_patch_size():
 
 def test_auto_patches_refined_by_the_answer_are_capped_by_the_scene_size():
     # Office at twice its element sizes: 1 m wall elements make 2 m auto patches; refining by
-    # the answer they are at most AUTO_PATCH_SCENE of the room's 2.7 m height, and a length
-    # the scene asks for is kept as asked.
-    from hemirad.assembly import AUTO_PATCH_SCENE, make_patches
+    # the answer the refined solves' are at most AUTO_PATCH_SCENE of the room's 2.7 m height
+    # and the first solve's, which only ranks, at most FIRST_SOLVE_PATCH_SCENE of it (unless
+    # no round can follow: then the first solve is the answer); a length the scene asks for is
+    # kept as asked.
+    from hemirad.assembly import AUTO_PATCH_SCENE, FIRST_SOLVE_PATCH_SCENE, make_patches
 
-    def widest(scene) -> float:
-        mesh = build_mesh(scene)
-        patch = make_patches(scene, mesh, torch.device("cpu")).tree.patch
+    def widest(mesh, patch) -> float:
         centroids = mesh.centroids
         return max(float((centroids[patch == p].amax(dim=0) - centroids[patch == p].amin(dim=0)).max())
                    for p in torch.unique(patch))
 
+    def first_and_refined(scene):
+        mesh = build_mesh(scene)
+        patches = make_patches(scene, mesh, torch.device("cpu"))
+        refined = patches.tree.patch if patches.regroup is None else patches.regroup
+        return widest(mesh, patches.tree.patch), widest(mesh, refined)
+
     scene = hemirad.load_scene("office").with_element_sizes_scaled(2.0)
-    cap = AUTO_PATCH_SCENE * 2.7
-    assert widest(scene) > 1.5 * cap  # unrefined: two elements a side
+    cap, first_cap = AUTO_PATCH_SCENE * 2.7, FIRST_SOLVE_PATCH_SCENE * 2.7
+    assert min(first_and_refined(scene)) > 1.5 * cap  # unrefined: two elements a side
     scene.refine.pattern, scene.refine.criterion = "pattern2", "answer"
     assert scene.refines_by_answer
-    assert widest(scene) < cap
+    first, refined = first_and_refined(scene)
+    assert refined < cap < first < first_cap
+    scene.refine.rounds = 0
+    assert max(first_and_refined(scene)) < cap
+    scene.refine.rounds, scene.refine.max_elements = 1, build_mesh(scene).num_elements
+    assert max(first_and_refined(scene)) < cap
+    scene.refine.max_elements = 200_000
     scene.solver.patch_size = 1.5
-    assert widest(scene) > 1.5 * cap
+    assert min(first_and_refined(scene)) > 1.5 * cap
 
 
 def test_a_bad_patch_size_is_one_paragraph_naming_the_key(tmp_path):

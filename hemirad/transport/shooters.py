@@ -131,6 +131,9 @@ class PatchShooters:
             equal parts of each (``eye_points``; its row the mean of theirs) instead of its
             centroid: a lamp's penumbrae are then those of a lamp meshed 2**eye_level times
             finer, without its elements.
+        regroup: (T,) int64, optional: the patch each element of the tree's mesh joins when
+            the mesh is refined and solved afresh (``assembly.refined_patches``), where that
+            differs from ``tree``'s (the answer's first solve shoots from larger patches).
     Attributes:
         leaf, patch, source: (T,) int64 each element's leaf position, patch and source
             (children inherit their parent's).
@@ -145,9 +148,10 @@ class PatchShooters:
 
     def __init__(self, tree: PatchTree, device: torch.device, split_test: ShooterTest | None = None,
                  source: torch.Tensor | None = None, source_corners: torch.Tensor | None = None,
-                 source_split: str | None = None, eye_level: int = 0):
+                 source_split: str | None = None, eye_level: int = 0, regroup: torch.Tensor | None = None):
         self.tree = tree
         self.eye_level = eye_level
+        self.regroup = regroup
         self.split_test = split_test
         self._leaf = GrowingRows(tree.leaf.to(device))
         self._patch = GrowingRows(tree.patch.to(device))

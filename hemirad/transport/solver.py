@@ -46,7 +46,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
 #: 26: refinement judged on the answer ranks the elements by their error over the three
 #: colour channels, not by luminance, weighed by the camera's pixels (refine.importance), and
-#: sizes a round for 0.8 of its tolerance;
+#: sizes a round for 0.8 of its tolerance; its first solve shoots from patches capped at 0.3
+#: of the scene's extent where a round will follow;
 #: 25: a round of refinement by the answer grows the mesh no more than its fresh solve's kept
 #: light is predicted to fit ``solver.cache_mb`` (``answer.memory_growth``), and lamps whose
 #: elements are small beside the scene shoot without eyes (``assembly.emitter_eye_level``);
