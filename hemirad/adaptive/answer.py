@@ -243,7 +243,7 @@ GENERATIONS = 2
 #: one of 1,600, for 3 s of its 10.
 MIN_ROUND_GROWTH = 0.05
 #: A round toward a tolerance is sized for this share of it (``tolerance_splits``): the
-#: interpolation estimate reads 0.49-1.36x the measured error, and over a first round it fell
+#: interpolation estimate reads 0.5-1.7x the measured error, and over a first round it fell
 #: as elements^-0.8 to elements^-1.55 (the answer from x2 on the three bundled scenes, ranked
 #: by the camera's pixels), so a round sized for the tolerance itself either stopped over it
 #: (the Cornell box named the finest uniform mesh's error: 2,481 elements, relMSE 1.12x it)
