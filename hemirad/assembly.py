@@ -197,8 +197,9 @@ def rim_stretches(scene: Scene, mesh: Mesh, size: np.ndarray) -> np.ndarray | No
 def refined_patches(scene: Scene, solver: ProgressiveSolver, saved: dict | None = None) -> PatchShooters:
     """The patches of the solver's mesh after refinement judged on the answer split it
     (docs/DESIGN.md §3.8): those of the initial mesh, each now holding its elements' children
-    (``solver.patches.patch``, carried through the split; ``saved``: a saved run's
-    ``PatchShooters.state_dict``), with every emitting element, and every one whose object's
+    (``solver.patches.patch``, carried through the split, or after the first solve's larger
+    patches its ``regroup``; ``saved``: a saved run's ``PatchShooters.state_dict``), with
+    every emitting element, and every one whose object's
     patch size is none, alone; near a node its light leaves from the children of the initial
     elements its elements lie in (``PatchShooters``' ``source_split``). Measured on office
     refined twice (12,751 elements), relative MSE: patches built afresh at the refined

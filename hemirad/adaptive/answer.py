@@ -347,7 +347,7 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
     ``display``: how the picture the ranking judges is drawn (``element_errors``).
     ``importance(mesh)``: (T,) each element's weight in the ranking beside its area (and in
     the interpolation estimate): how much of the picture it fills (``pipeline`` passes
-    ``evaluation.importance.view_importance``); None: area alone.
+    ``output.importance.view_importance``); None: area alone.
     ``report`` is called after each round's split. Returns one report per round (the first
     is the unrefined solve), appended to ``reports`` when given: a run resumed from a
     checkpoint passes the rounds it had finished and goes on with the next (its solver

@@ -21,8 +21,8 @@ from hemirad.scene.model import Camera
 #: it is not left wholly coarse. Measured (converged, the answer from x2 to a third of the
 #: finest uniform mesh's elements; relMSE against the references; by area alone 0.000108 /
 #: 0.000021 / 0.000046): the Cornell box / floating / office 0.000103 / 0.000023 / 0.000040
-#: weighing unseen elements 0, 0.000104 / 0.000022 / - at 0.1, 0.000105 / 0.000021 / 0.000042
-#: at 0.25.
+#: weighing unseen elements 0, 0.000104 / 0.000022 / 0.000040 at 0.1, 0.000105 / 0.000021 /
+#: 0.000042 at 0.25.
 UNSEEN = 0.1
 
 
@@ -30,8 +30,9 @@ def view_importance(mesh: Mesh, camera: Camera) -> torch.Tensor:
     """(T,) float64 each element's weight: ``UNSEEN`` plus (1 - ``UNSEEN``) times the pixels
     of ``camera``'s picture whose centres fall on it and its vertex-sharing neighbours per unit
     of their area, over the picture's mean (its pixels over the area of the elements seen: 1
-    where every seen surface fills it alike). Counted over the neighbours, an element smaller than a pixel is weighed by the
-    surface around it rather than by whether a pixel centre happens to fall on it."""
+    where every seen surface fills it alike). Counted over the neighbours, an element smaller
+    than a pixel is weighed by the surface around it rather than by whether a pixel centre
+    happens to fall on it."""
     element = pixel_elements(mesh, camera).to(mesh.areas.device)
     pixels = torch.bincount(element[element >= 0], minlength=mesh.num_elements).to(mesh.areas.dtype)
     if not bool((pixels > 0).any()):
