@@ -99,6 +99,8 @@ def fingerprint(scene: Scene) -> dict[str, object]:
         **{f"solver.{k}": getattr(scene.solver, k)
            for k in ("patch_size", "overshoot", "sweeps", "shooter_split", "small_receivers")},
         **{f"refine.{k}": getattr(scene.refine, k) for k in _REFINE_FIELDS},
+        # what the answer's later rounds split by (nothing to a run that does not refine so)
+        "refine.importance": scene.refine_importance if scene.refines_by_answer else None,
     }
 
 

@@ -2,6 +2,7 @@
 interrupted; checkpoints are written atomically and refused for a different run."""
 from __future__ import annotations
 
+import copy
 import dataclasses
 from pathlib import Path
 
@@ -151,6 +152,21 @@ def test_resuming_a_different_run_is_refused(saved, change, says):
     with pytest.raises(HemiradInputError, match="written for a different run") as error:
         hemirad.solve(s, checkpoint=saved, resume=True)
     assert says in str(error.value)
+
+
+def test_the_answers_importance_is_part_of_the_fingerprint_only_where_it_ranks():
+    # a run refined by the answer and resumed with the other importance would split its later
+    # rounds otherwise than the run it continues
+    refined = scene(shots=4)
+    refined.refine = dataclasses.replace(refined.refine, pattern="pattern2", criterion="answer")
+    other = copy.deepcopy(refined)
+    other.refine = dataclasses.replace(other.refine, importance="surfaces")
+    assert checkpoints.fingerprint(refined)["refine.importance"] == "camera"
+    assert checkpoints.fingerprint(other)["refine.importance"] == "surfaces"
+    plain = scene(shots=4)
+    changed = copy.deepcopy(plain)
+    changed.refine = dataclasses.replace(changed.refine, importance="surfaces")
+    assert checkpoints.fingerprint(plain) == checkpoints.fingerprint(changed)
 
 
 @pytest.mark.parametrize("module, constant, key, says", [
