@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from hemirad.adaptive.answer import MIN_ROUND_GROWTH
+from hemirad.adaptive.answer import round_splits
 from hemirad.adaptive.refine import Refiner
 from hemirad.adaptive.shooter_split import point_source_test
 from hemirad.core.device import select_device
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patches import PatchTree, build_patches, element_sides, group_patches, rim_runs
+from hemirad.geometry.patterns import CHILDREN
 from hemirad.lighting.photometry import emission_table
 from hemirad.scene.meshing import build_mesh, surface_objects
 from hemirad.scene.model import MeshFile, Scene, resolved_reflector_resolution, resolved_small_receivers
@@ -133,10 +134,10 @@ def _patch_tree(scene: Scene, mesh: Mesh, owner: np.ndarray, cap: float) -> Patc
 
 def _will_refine(scene: Scene, mesh: Mesh) -> bool:
     """Whether refinement judged on the answer may make a round from ``mesh``: the rounds
-    and the element budget allow one (``adaptive.answer.MIN_ROUND_GROWTH``)."""
+    and the element budget allow one, as ``refine_by_answer`` asks it (``round_splits``)."""
     refine = scene.refine
-    return (scene.refines_by_answer and refine.rounds > 0
-            and refine.max_elements > (1.0 + MIN_ROUND_GROWTH) * mesh.num_elements)
+    return scene.refines_by_answer and refine.rounds > 0 and round_splits(
+        mesh.num_elements, refine.max_elements, CHILDREN[refine.pattern], refine.rounds, refine.round_growth) > 0
 
 
 def emitter_eye_level(scene: Scene, mesh: Mesh, emission: torch.Tensor) -> int:
