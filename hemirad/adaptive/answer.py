@@ -356,15 +356,19 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
     for index in range(len(reports), rounds + 1):
         shoot_on()
         mesh = solver.mesh
-        shown = solver.state.radiosity  # the ambient term is negligible once converged
-        errors = element_errors(mesh, shown, display)
-        weights = None if importance is None else importance(mesh)
-        estimated = (estimated_relative_error(mesh, shown, display, errors, solver.emission, weights)
-                     if estimate is None else estimate())
-        reports.append(RoundReport(index, mesh.num_elements, 0, estimated, solver.state.shots, solver.kept_light_bytes))
         growth = refiner.options.round_growth
-        if index == rounds or estimated <= tolerance or round_splits(
-                mesh.num_elements, max_elements, refiner.children, rounds - index, growth) <= 0:
+        last = index == rounds or round_splits(mesh.num_elements, max_elements, refiner.children, rounds - index,
+                                               growth) <= 0
+        shown = solver.state.radiosity  # the ambient term is negligible once converged
+        if last and estimate is not None:  # nothing left to rank: only the estimate is reported
+            estimated = estimate()
+        else:
+            errors = element_errors(mesh, shown, display)
+            weights = None if importance is None else importance(mesh)
+            estimated = (estimated_relative_error(mesh, shown, display, errors, solver.emission, weights)
+                         if estimate is None else estimate())
+        reports.append(RoundReport(index, mesh.num_elements, 0, estimated, solver.state.shots, solver.kept_light_bytes))
+        if last or estimated <= tolerance:
             break
         fits = memory_growth(reports[-1].kept_bytes, solver.cache_bytes)
         count = round_splits(mesh.num_elements, max_elements, refiner.children, rounds - index, min(growth, fits))
