@@ -464,7 +464,7 @@ def test_floor_beside_the_cornell_blocks_matches_the_reference():
     (15 of 26, 5.4%; 11 of 26 and 7.2% before the near field's contour integral was cut at
     the receiver edges' feet).
     (At the shipped 4 cm elements neither is within 5%: the floor's radiosity changes too
-    fast there for 4 cm elements; see the README.)"""
+    fast there for 4 cm elements; see docs/MEASUREMENTS.md, Contact meshing.)"""
     conforming = beside_blocks_errors(True, 10.0)
     straddling = beside_blocks_errors(False, 10.0)
     assert len(conforming) >= 20

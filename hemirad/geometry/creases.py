@@ -20,7 +20,7 @@ from hemirad.core.fastops import cross3
 from hemirad.geometry.mesh import barycentric
 
 #: The width of the strip of elements along a concave crease, in elements: measured on the
-#: bundled scenes' answers (README, Concave creases).
+#: bundled scenes' answers (docs/MEASUREMENTS.md, Concave creases).
 CREASE_STRIP = 0.25
 #: A triangle faces into the quad when its normal is within 60 degrees of the side's
 #: inward direction.
