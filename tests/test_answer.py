@@ -351,8 +351,10 @@ def test_rounds_stop_at_the_tolerance_and_make_no_round_for_a_sliver_of_it():
 
 
 def test_a_run_refines_by_the_answer_and_reports_its_rounds_and_estimate(tmp_path):
+    from test_checkpoint import SMALL_ROOM
+
     out = tmp_path / "out"
-    assert main(["cornell_box", "-q", "-o", str(out), "--refine", "pattern2", "--criterion", "answer",
+    assert main([str(SMALL_ROOM), "-q", "-o", str(out), "--refine", "pattern2", "--criterion", "answer",
                  "--rounds", "1", "--tolerance", "1e-6", "--unshot-fraction", "0.01", "--resolution", "32"]) == 0
     stats = json.loads((out / "stats.json").read_text())
     rounds = stats["refine"]["rounds"]
