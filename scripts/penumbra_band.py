@@ -29,7 +29,7 @@ REFERENCES = Path(__file__).resolve().parent.parent / "tests" / "references"
 BAND = (0.05, 0.95)
 #: (label, element-size factor, rounds of the answer (0: none), element budget)
 RUNS = (("uniform x0.5 (the study's finest)", 0.5, 0, None),
-        ("answer from x1 to 44,000 elements", 1.0, 3, 44_000),
+        ("answer from x1, three rounds toward 44,000 elements", 1.0, 3, 44_000),
         ("answer from x2 to 3,426 elements (a third of the finest's)", 2.0, 8, 3426))
 
 
