@@ -360,13 +360,13 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
         last = index == rounds or round_splits(mesh.num_elements, max_elements, refiner.children, rounds - index,
                                                growth) <= 0
         shown = solver.state.radiosity  # the ambient term is negligible once converged
-        if last and estimate is not None:  # nothing left to rank: only the estimate is reported
-            estimated = estimate()
-        else:
+        # the elements' errors rank a round's splits, and make the interpolation estimate where
+        # none is given: in a last round with an estimate they are not needed
+        if not last or estimate is None:
             errors = element_errors(mesh, shown, display)
             weights = None if importance is None else importance(mesh)
-            estimated = (estimated_relative_error(mesh, shown, display, errors, solver.emission, weights)
-                         if estimate is None else estimate())
+        estimated = (estimated_relative_error(mesh, shown, display, errors, solver.emission, weights)
+                     if estimate is None else estimate())
         reports.append(RoundReport(index, mesh.num_elements, 0, estimated, solver.state.shots, solver.kept_light_bytes))
         if last or estimated <= tolerance:
             break
