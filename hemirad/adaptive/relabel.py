@@ -119,7 +119,7 @@ def relabel_atlas(element: torch.Tensor, hits: torch.Tensor, split_pixels: torch
     is_best = margin == best[pixel]
     chosen = torch.full((len(split_pixels),), len(descent.parent), dtype=torch.int64, device=device)
     chosen = chosen.scatter_reduce(0, pixel[is_best], candidate[is_best], "amin")  # ties: the lower index
-    out[split_pixels] = chosen
+    out[split_pixels] = chosen.to(out.dtype)
     return out
 
 

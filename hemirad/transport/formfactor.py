@@ -67,7 +67,7 @@ def element_form_factors(element: torch.Tensor, front: torch.Tensor, weights: to
     """F_sj: the sum of the delta form factors of the pixels that see the front of element j.
 
     Args:
-        element: (P,) or (3R, R) int64 element index per pixel.
+        element: (P,) or (3R, R) int32 or int64 element index per pixel.
         front: same shape, bool, pixel sees a front face.
         weights: same shape, float64 delta form factors.
     Returns:

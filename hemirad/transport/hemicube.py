@@ -239,7 +239,7 @@ class Hemicube:
             frame: (3, 3) rows t, b, n of the local frame (``tangent_frame``), n the normal.
             near, far: clip distances; everything between them along each face's axis is seen.
         Returns:
-            element: (3R, R) int64, the triangle each pixel sees, -1 for none (the atlas of
+            element: (3R, R) int32, the triangle each pixel sees, -1 for none (the atlas of
                 the module docstring, decoded);
             front: (3R, R) bool, the pixel sees a triangle's front (a back face occludes but
                 receives nothing).
@@ -299,7 +299,7 @@ class Hemicube:
         self.drawn_triangles = sum(count for _, count in ranges)
         # position in the drawn list (+1; 0: nothing) -> triangle id (-1: nothing), in one
         # gather; a pixel sees a front when its item is neither 0 nor marked as a back face
-        element = np.concatenate([[-1], ids]).take(self._drawn & np.uint32(BACK_FACE_BIT - 1))
+        element = np.concatenate([[-1], ids]).astype(np.int32).take(self._drawn & np.uint32(BACK_FACE_BIT - 1))
         front = self._drawn - np.uint32(1) < np.uint32(BACK_FACE_BIT - 1)  # (0 - 1 wraps round)
         self.profiler.add("raster", mid - start)
         self.profiler.add("readback", time.perf_counter() - mid)

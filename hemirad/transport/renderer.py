@@ -30,7 +30,7 @@ def clip_planes(mesh: Mesh, points: torch.Tensor | None = None) -> tuple[float, 
     return 1e-6 * diagonal, 1.01 * diagonal
 
 
-#: Prefetched hemicubes read back and not asked for yet, at most (an atlas each, 0.8 MB at
+#: Prefetched hemicubes read back and not asked for yet, at most (an atlas each, 1 MB at
 #: resolution 256).
 READY_MAX = 2
 

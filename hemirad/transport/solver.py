@@ -79,7 +79,7 @@ ARITHMETIC = 26
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
 #: A sweep makes the near fields of this many patches' nodes at once (``nearfield.near_fields``;
-#: a group, in patch index order), keeping their hemicubes' views until then (1.7 MB each at
+#: a group, in patch index order), keeping their hemicubes' views until then (1 MB each at
 #: resolution 256; ``GROUPS_AHEAD`` + 1 groups' at most).
 NEAR_BATCH = 32
 #: How many groups the drawing thread may run ahead of the worker that makes their light
