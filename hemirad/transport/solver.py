@@ -21,7 +21,7 @@ import torch
 
 from hemirad.core.errors import HemiradWarning
 from hemirad.core.fastops import flatnonzero, row_sums
-from hemirad.core.runtime import deterministic, keep_freed_memory, torch_threads
+from hemirad.core.runtime import deterministic, keep_freed_memory, release_freed_memory, torch_threads
 from hemirad.core.timing import Profiler
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import GrowingRows
@@ -728,6 +728,7 @@ class ProgressiveSolver:
             for node, (F, _) in nodes.items():
                 self._transport.add(node, self.patches.bounds(node), F, self._near.get(node),
                                     self.patches.sources(node)[1])
+        release_freed_memory()  # the group's views, rows and near fields were freed by both threads
 
     def _small_receiver_limit(self, emits: bool) -> float | None:
         """The footprint in pixels under which a shooter's receivers get their factors from
