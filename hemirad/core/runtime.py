@@ -100,8 +100,8 @@ def release_freed_memory(kept: int = FREED_HEAP_KEPT) -> bool:
     is never reused: the furnished room of ``scripts/peer_room.py`` refined once peaked at
     2.7 GB, of which about 0.6 GB was free heap. A solve calls this between sweep groups; it
     costs a walk over the heaps' free lists (about a millisecond) and, where it trims, the
-    trim and the page faults of reusing what it handed back. Nothing elsewhere than glibc
-    2.33 and later.
+    trim and the page faults of reusing what it handed back. Does nothing where the C
+    library is not glibc 2.33 or later.
     """
     mallinfo2 = _libc_function("mallinfo2", (), _MallInfo2)
     trim = _libc_function("malloc_trim", (ctypes.c_size_t,), ctypes.c_int)

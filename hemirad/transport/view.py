@@ -52,8 +52,8 @@ class HemicubeView:
     elements), as detached tensors on the solver's device.
 
     Attributes:
-        element: (P,) int32 element seen by each pixel, -1 for none (int32: the views a
-            sweep holds for its worker are most of a solve's transient memory).
+        element: (P,) int32 element seen by each pixel, -1 for none (int32: half the bytes
+            of the views a sweep holds for its worker).
         front: (P,) bool, the pixel sees an element's front (a back face occludes but
             receives nothing).
         weight: (P,) float64 delta form factor of each pixel (``delta_form_factors``).
