@@ -38,7 +38,8 @@ def test_freed_heap_past_what_is_kept_goes_back_to_the_system():
         pytest.skip("mallinfo2 needs glibc 2.33 or later")
     code = ("import numpy as np\n"
             "from hemirad.core.runtime import keep_freed_memory, release_freed_memory\n"
-            "rss = lambda: int(open('/proc/self/statm').read().split()[1]) * 4096\n"
+            "import os\n"
+            "rss = lambda: int(open('/proc/self/statm').read().split()[1]) * os.sysconf('SC_PAGE_SIZE')\n"
             "keep_freed_memory()\n"
             "blocks = [np.ones(100_000 // 8) for _ in range(2000)]\n"
             "kept = blocks[::10]\n"
