@@ -83,9 +83,11 @@ def keep_freed_memory() -> bool:
     other C libraries, where nothing is changed).
     """
     global _allocator_tuned
+    if _allocator_tuned:
+        return True
     mallopt = _libc_function("mallopt", (ctypes.c_int, ctypes.c_int), ctypes.c_int)
-    if _allocator_tuned or mallopt is None:
-        return _allocator_tuned
+    if mallopt is None:
+        return False
     _allocator_tuned = bool(mallopt(_M_MMAP_THRESHOLD, 32 << 20) and mallopt(_M_TRIM_THRESHOLD, 256 << 20)
                             and mallopt(_M_TOP_PAD, 64 << 20))
     return _allocator_tuned
