@@ -13,7 +13,7 @@ from hemirad.core.device import DEVICES, DEVICE_NAMES, is_device_name
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.patterns import PATTERN_CHOICES, describe_patterns
 from hemirad.scene.loader import MAX_SURFACE_NAME, MAX_TRIANGLES, bundled_scenes, load_scene
-from hemirad.scene.model import CRITERION_NAMES, IMPORTANCE_CHOICES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES
+from hemirad.scene.model import CRITERION_NAMES, FINAL_GATHER_CHOICES, IMPORTANCE_CHOICES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES
 from hemirad.scene.options import MAX_CACHE_MB, MAX_ROUND_GROWTH
 from hemirad.scene.sensorfile import read_sensor_file
 
@@ -152,6 +152,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="how element values reach the vertices that shading and exports interpolate: "
                              "quadratic (the default), a quadratic fitted around each vertex; mean, the "
                              "area-weighted mean of its elements, as in the paper (solver.reconstruction)")
+    parser.add_argument("--final-gather", choices=FINAL_GATHER_CHOICES,
+                        help="once the solve ends, give elements the light a hemicube at their centroid gathers: "
+                             "contacts, those beside what stands on or hangs under a surface (where the shots' "
+                             "patches see past its edges); all, every element (one hemicube each); none (the "
+                             "default) (solver.final_gather)")
     parser.add_argument("--cache-mb", type=_megabytes, metavar="MB",
                         help="memory for the form-factor rows and the light kept between sweeps; a solve that "
                              "outgrows it goes on one patch at a time, which can take many times longer "
@@ -260,6 +265,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
                       "device": ("--device", args.device), "patch_size": ("--patch-size", args.patch_size),
                       "small_receivers": ("--small-receivers", args.small_receivers),
                       "reconstruction": ("--reconstruction", args.reconstruction),
+                      "final_gather": ("--final-gather", args.final_gather),
                       "cache_mb": ("--cache-mb", args.cache_mb),
                       "error_samples": ("--error-samples", args.error_samples),
                       "picture_error_samples": ("--picture-error-samples", args.picture_error_samples)}
@@ -315,6 +321,8 @@ def _solve_and_write(args: argparse.Namespace, argv: list[str] | None, scene, ou
     if stats.get("estimated_picture_error") is not None:
         estimate += (f" (the picture's {stats['estimated_picture_error']:.1%} +- "
                      f"{stats['estimated_picture_error_standard_error']:.1%})")
+    if "final_gather" in stats:
+        estimate += f", {stats['final_gather']['elements']} elements finished by final gathers"
     say(f"hemirad: {stats['elements']} elements, {stats['shots']} shots{resumed}, unshot fraction "
         f"{stats['unshot_fraction']:.3g}{estimate}, {time.perf_counter() - start:.1f} s")
     for kind, path in paths.items():

@@ -30,12 +30,14 @@ from hemirad.adaptive.answer import Display, RoundReport, element_errors, estima
 from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver, refined_patches
 from hemirad.core.atomic import remove_stale_temporaries
+from hemirad.core.colour import luminance
 from hemirad.core.device import select_device
 from hemirad.core.errors import HemiradInputError, SceneError, bounded_repr
 from hemirad.evaluation.gathered_error import GatheredError, gathered_error, image_gathered_error
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import angle_quality
 from hemirad.lighting import photometry, survey
+from hemirad.lighting.gathered import finished_radiosity
 from hemirad.lighting.grids import MAX_GRID_POINTS, grid_counts, grid_spacing
 from hemirad.lighting.sensors import SENSOR_RESOLUTION, irradiance_at
 from hemirad.output import display, export, falsecolour, gltf
@@ -580,10 +582,16 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
             saver.finish()
     finally:
         solver.close()
+    times, gather_stats = elapsed(), None
+    if options.final_gather != "none":
+        gather_stats = estimate.finish_by_gathers(mesh)
     result = estimate.result()
     final = result.mesh
     stats = result.stats
-    stats.update(_stats(scene, solver, final, mesh.num_elements, elapsed(), resumed_from, rounds, answer_refiner))
+    stats.update(_stats(scene, solver, final, mesh.num_elements, times, resumed_from, rounds, answer_refiner))
+    if gather_stats is not None:
+        stats["seconds"]["final_gather"] = gather_stats.pop("seconds")
+        stats["final_gather"] = gather_stats
     stats.update(units=scene.units, metres_per_unit=scene.metres_per_unit,
                  flux=photometry.flux_emissions(scene, mesh))
     gathered, seconds = estimate()  # the last round's, when refinement judged on the answer made one here
@@ -690,6 +698,22 @@ class _ErrorEstimate:
         if key != self._key:
             self._key, self._result, self._estimate = key, Result.of_solver(self.scene, self.solver), None
         return self._result
+
+    def finish_by_gathers(self, initial: Mesh) -> dict:
+        """Give the elements ``solver.final_gather`` names (on the solution refined from
+        ``initial``) the light their centroids gather (``lighting.gathered``); the estimate is
+        then the gathered solution's. What stats.json's final_gather says: the mode, the
+        elements gathered, the relative change of their luminance times area, the seconds."""
+        start = time.perf_counter()
+        result, mode = self.result(), self.scene.solver.final_gather
+        radiosity, elements = finished_radiosity(mode, initial, result.mesh, result.radiosity, result.emission,
+                                                 result.reflectance, result.ambient, self.scene.solver.resolution)
+        weights = result.mesh.areas[elements]
+        before = float(luminance(result.radiosity[elements]) @ weights)
+        after = float(luminance(radiosity[elements]) @ weights)
+        self._result, self._estimate = dataclasses.replace(result, radiosity=radiosity), None
+        return {"mode": mode, "elements": len(elements), "luminance_change": after / before - 1 if before else 0.0,
+                "seconds": time.perf_counter() - start}
 
     def __call__(self) -> tuple[GatheredError | None, float]:
         result = self.result()

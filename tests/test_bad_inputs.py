@@ -84,6 +84,7 @@ def test_an_output_path_that_is_a_file(tmp_path, capsys):
     ("--refine", "pattern3", "invalid choice"),
     ("--criterion", "gradient2", "invalid choice"),
     ("--importance", "view", "invalid choice"),
+    ("--final-gather", "everywhere", "invalid choice"),
     ("--device", "gpu", "expected one of cpu, cuda, cuda:N, auto"),
 ])
 def test_bad_option_value_is_one_paragraph_with_exit_code_2(option, value, says, capsys):

@@ -296,35 +296,51 @@ def _mean_plane_axes(elements: np.ndarray, normals: np.ndarray, areas: np.ndarra
     return plane_axes(normal / _lengths(normal)[:, None])
 
 
-def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -> np.ndarray:
-    """(T,) the straight runs of the rims of holes in planar surfaces that each element lies
-    along: where something stands on the surface (a block's footprint, left out by contact
-    meshing) or passes through it. 0: the element has no corner on a hole's rim; k > 0: its
-    corners on the rim lie on run k (numbered over the mesh), a stretch of the rim whose
-    edges turn at most ``turn`` degrees from its first's; -1: they lie on two runs (at a
-    corner of the footprint), on the rims of two holes, or on a rim that is not one loop. A
-    boundary loop is a hole where it runs clockwise seen from the surface's front (its
-    signed area, sum (a x b) . n over its edges as the triangles give them, is negative); the
-    outline runs counter-clockwise. With ``least`` (T,), only the holes whose rim is at least
-    as long as the median of ``least`` over the surface's elements by area (as its patch grid
-    takes it)."""
+@dataclass(frozen=True)
+class HoleRim:
+    """The rim of one hole in a planar surface of a mesh (m edges).
+
+    Attributes:
+        surface: the surface it lies in.
+        a, b: (m,) int64 its edges' vertices, directed as its triangles give them.
+        element: (m,) int64 the element each edge bounds.
+        own: (k,) int64 the surface's elements; ends: (r,) int64 the rim's vertices.
+    """
+
+    surface: int
+    a: np.ndarray
+    b: np.ndarray
+    element: np.ndarray
+    own: np.ndarray
+    ends: np.ndarray
+
+
+def hole_rims(mesh: Mesh, least: np.ndarray | None = None) -> list[HoleRim]:
+    """The rims of the holes in the planar surfaces of ``mesh``: where something stands on
+    a surface (a block's footprint, left out by contact meshing, a lamp hung under a
+    ceiling) or passes through it. A boundary loop is a hole where it runs clockwise seen
+    from the surface's front (its signed area, sum (a x b) . n over its edges as the
+    triangles give them, is negative); the outline runs counter-clockwise. With ``least``
+    (T,), only the holes whose rim is at least as long as the median of ``least`` over the
+    surface's elements by area (as its patch grid takes it). On a mesh refined with hanging
+    vertices the split edges read as boundaries: find rims on the initial mesh."""
     triangles = mesh.triangles.cpu().numpy()
     vertices = mesh.vertices.cpu().numpy()
     normals = mesh.normals.cpu().numpy()
     areas = mesh.areas.cpu().numpy()
     surface = mesh.surface.cpu().numpy()
-    runs = np.zeros(len(triangles), dtype=np.int64)
-    cos_turn = np.cos(np.radians(turn))
+    rims = []
     for s in np.unique(surface):
         own = np.flatnonzero(surface == s)
         if len(own) < 2 or np.abs(normals[own] - normals[own[0]]).max() > 1e-9:  # planar surfaces only
             continue
         a = triangles[own].reshape(-1)
         b = triangles[own][:, [1, 2, 0]].reshape(-1)
+        element = np.repeat(own, 3)
         keys = np.minimum(a, b) * len(vertices) + np.maximum(a, b)
         unique, counts = np.unique(keys, return_counts=True)
         boundary = np.isin(keys, unique[counts == 1])  # the directed edges on the boundary
-        a, b = a[boundary], b[boundary]
+        a, b, element = a[boundary], b[boundary], element[boundary]
         if len(a) == 0:
             continue
         # the boundary's loops: components of its vertices joined by its edges
@@ -340,18 +356,35 @@ def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -
         shortest = 0.0 if least is None else _median_patch_size(least[own], areas[own])
         for hole in np.flatnonzero((area < 0) & (perimeter >= shortest)):
             edges = np.flatnonzero(loop == hole)
-            touching = np.isin(triangles[own], ends[label == hole]).any(1)  # a corner on this rim
-            edge_run = _straight_runs(a[edges], b[edges], vertices, cos_turn)
-            if edge_run is None:  # not one loop: every element along it alone
-                runs[own[touching]] = -1
-                continue
-            first = runs.max() + 1
-            # each rim vertex's runs: the runs of the (two) rim edges that meet at it
-            vertex_runs = np.concatenate([np.stack([a[edges], edge_run], 1), np.stack([b[edges], edge_run], 1)])
-            for k in np.flatnonzero(touching):
-                met = np.unique(vertex_runs[np.isin(vertex_runs[:, 0], triangles[own[k]]), 1])
-                alone = len(met) > 1 or runs[own[k]] != 0  # two runs, or two holes
-                runs[own[k]] = -1 if alone else first + met[0]
+            rims.append(HoleRim(int(s), a[edges], b[edges], element[edges], own, ends[label == hole]))
+    return rims
+
+
+def rim_runs(mesh: Mesh, least: np.ndarray | None = None, turn: float = 180.0) -> np.ndarray:
+    """(T,) the straight runs of the rims of holes in planar surfaces (``hole_rims``, with
+    ``least``) that each element lies along. 0: the element has no corner on a hole's rim;
+    k > 0: its corners on the rim lie on run k (numbered over the mesh), a stretch of the
+    rim whose edges turn at most ``turn`` degrees from its first's; -1: they lie on two runs
+    (at a corner of the footprint), on the rims of two holes, or on a rim that is not one
+    loop."""
+    triangles = mesh.triangles.cpu().numpy()
+    vertices = mesh.vertices.cpu().numpy()
+    runs = np.zeros(len(triangles), dtype=np.int64)
+    cos_turn = np.cos(np.radians(turn))
+    for rim in hole_rims(mesh, least):
+        own = rim.own
+        touching = np.isin(triangles[own], rim.ends).any(1)  # a corner on this rim
+        edge_run = _straight_runs(rim.a, rim.b, vertices, cos_turn)
+        if edge_run is None:  # not one loop: every element along it alone
+            runs[own[touching]] = -1
+            continue
+        first = runs.max() + 1
+        # each rim vertex's runs: the runs of the (two) rim edges that meet at it
+        vertex_runs = np.concatenate([np.stack([rim.a, edge_run], 1), np.stack([rim.b, edge_run], 1)])
+        for k in np.flatnonzero(touching):
+            met = np.unique(vertex_runs[np.isin(vertex_runs[:, 0], triangles[own[k]]), 1])
+            alone = len(met) > 1 or runs[own[k]] != 0  # two runs, or two holes
+            runs[own[k]] = -1 if alone else first + met[0]
     return runs
 
 

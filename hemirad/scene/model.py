@@ -91,6 +91,10 @@ def resolved_small_receivers(small_receivers: str, refined: bool) -> str:
 #: that shading, exports and error estimates interpolate: a quadratic fitted around each
 #: vertex, or the paper's area-weighted mean (``hemirad.output.reconstruction``).
 RECONSTRUCTION_CHOICES = ("quadratic", "mean")
+#: ``solver.final_gather`` (and ``--final-gather``): which elements take, once the solve ends,
+#: the light a hemicube at their centroid gathers (``hemirad.lighting.gathered``): none; those
+#: beside contact lines and the rims of what stands on or hangs under a surface; or all.
+FINAL_GATHER_CHOICES = ("none", "contacts", "all")
 
 
 @dataclass
@@ -233,6 +237,7 @@ class SolverOptions:
     # estimated_picture_error; 0 (the default): none, as it costs another 1-4 s
     picture_error_samples: int = 0
     reconstruction: str = "quadratic"  # one of RECONSTRUCTION_CHOICES
+    final_gather: str = "none"  # one of FINAL_GATHER_CHOICES
 
     @property
     def shoots_patches(self) -> bool:

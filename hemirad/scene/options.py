@@ -6,8 +6,8 @@ import numpy as np
 from hemirad.core.device import DEVICE_NAMES, is_device_name
 from hemirad.geometry.patterns import PATTERN_CHOICES
 from hemirad.scene.keys import Checker
-from hemirad.scene.model import (CRITERION_NAMES, IMPORTANCE_CHOICES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES, Camera, MeshingOptions, RefineOptions,
-                                 SolverOptions)
+from hemirad.scene.model import (CRITERION_NAMES, FINAL_GATHER_CHOICES, IMPORTANCE_CHOICES, RECONSTRUCTION_CHOICES,
+                                 SMALL_RECEIVER_CHOICES, Camera, MeshingOptions, RefineOptions, SolverOptions)
 
 #: The most ``solver.emitter_eyes`` levels: 256 hemicubes per emitting element.
 MAX_EYE_LEVEL = 4
@@ -20,7 +20,7 @@ MAX_ROUND_GROWTH = 100.0
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "width", "height", "exposure", "supersample")
 _SOLVER_KEYS = ("max_shots", "unshot_fraction", "resolution", "reflector_resolution", "ambient", "device",
                 "patch_size", "overshoot", "sweeps", "shooter_split", "emitter_eyes", "cache_mb", "small_receivers",
-                "error_samples", "picture_error_samples", "reconstruction")
+                "error_samples", "picture_error_samples", "reconstruction", "final_gather")
 _MESHING_KEYS = ("contacts", "creases", "intersections")
 _REFINE_KEYS = ("pattern", "criterion", "threshold", "relative", "max_depth", "min_area", "max_elements",
                 "interior", "shadow_edges", "view_surface", "shots", "tolerance", "rounds", "round_growth",
@@ -97,6 +97,8 @@ def read_solver(check: Checker, v) -> SolverOptions:
         opts.small_receivers = check.choice(m["small_receivers"], "solver.small_receivers", SMALL_RECEIVER_CHOICES)
     if "reconstruction" in m:
         opts.reconstruction = check.choice(m["reconstruction"], "solver.reconstruction", RECONSTRUCTION_CHOICES)
+    if "final_gather" in m:
+        opts.final_gather = check.choice(m["final_gather"], "solver.final_gather", FINAL_GATHER_CHOICES)
     if "error_samples" in m:
         opts.error_samples = check.integer(m["error_samples"], "solver.error_samples", "a whole number >= 0", 0)
     if "picture_error_samples" in m:
