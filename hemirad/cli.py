@@ -12,6 +12,7 @@ from pathlib import Path
 from hemirad.core.device import DEVICES, DEVICE_NAMES, is_device_name
 from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.patterns import PATTERN_CHOICES, describe_patterns
+from hemirad.lighting.gathered import GatherReport
 from hemirad.scene.loader import MAX_SURFACE_NAME, MAX_TRIANGLES, bundled_scenes, load_scene
 from hemirad.scene.model import CRITERION_NAMES, FINAL_GATHER_CHOICES, IMPORTANCE_CHOICES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES
 from hemirad.scene.options import MAX_CACHE_MB, MAX_ROUND_GROWTH
@@ -236,6 +237,16 @@ class _Progress:
 
     def __call__(self, report) -> None:
         if self.quiet:
+            return
+        if isinstance(report, GatherReport):  # the solve is done: the final gathers' own bar
+            if self.bar is not None and self.bar.unit == "shot":
+                self.close()
+            if self.bar is None:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=report.elements, unit="gather", file=sys.stderr, dynamic_ncols=True,
+                                desc="final gathers")
+            self.bar.update(report.gathered - self.bar.n)
             return
         if self.bar is None:
             from tqdm import tqdm

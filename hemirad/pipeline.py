@@ -37,7 +37,7 @@ from hemirad.evaluation.gathered_error import GatheredError, gathered_error, ima
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.split import angle_quality
 from hemirad.lighting import photometry, survey
-from hemirad.lighting.gathered import finished_radiosity
+from hemirad.lighting.gathered import GatherReport, finished_radiosity
 from hemirad.lighting.grids import MAX_GRID_POINTS, grid_counts, grid_spacing
 from hemirad.lighting.sensors import SENSOR_RESOLUTION, irradiance_at
 from hemirad.output import display, export, falsecolour, gltf
@@ -520,7 +520,9 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
     Args:
         scene: from ``load_scene``; ``scene.solver`` and ``scene.refine`` may be edited first.
         progress: called after every shot with a ``ShotReport`` (shots, shooter, elements,
-            unshot fraction, seconds); raising from it (e.g. KeyboardInterrupt) stops the solve.
+            unshot fraction, seconds), and with ``solver.final_gather`` with a
+            ``lighting.gathered.GatherReport`` (gathered, elements, seconds) as the gathers
+            go; raising from it (e.g. KeyboardInterrupt) stops the solve.
         checkpoint: path of a checkpoint file (e.g. ``out/checkpoint.pt``), or None for none.
             With a path, a checkpoint is also written when the solve ends, so that a finished
             run can be continued with a larger ``max_shots``.
@@ -584,7 +586,7 @@ def solve(scene: Scene, progress: Callable[[ShotReport], None] | None = None, ch
         solver.close()
     times, gather_stats = elapsed(), None
     if options.final_gather != "none":
-        gather_stats = estimate.finish_by_gathers(mesh)
+        gather_stats = estimate.finish_by_gathers(mesh, progress)
     result = estimate.result()
     final = result.mesh
     stats = result.stats
@@ -699,7 +701,7 @@ class _ErrorEstimate:
             self._key, self._result, self._estimate = key, Result.of_solver(self.scene, self.solver), None
         return self._result
 
-    def finish_by_gathers(self, initial: Mesh) -> dict:
+    def finish_by_gathers(self, initial: Mesh, progress: Callable[[GatherReport], None] | None = None) -> dict:
         """Give the elements ``solver.final_gather`` names (on the solution refined from
         ``initial``) the light their centroids gather (``lighting.gathered``); the estimate is
         then the gathered solution's. What stats.json's final_gather says: the mode, the
@@ -707,7 +709,8 @@ class _ErrorEstimate:
         start = time.perf_counter()
         result, mode = self.result(), self.scene.solver.final_gather
         radiosity, elements = finished_radiosity(mode, initial, result.mesh, result.radiosity, result.emission,
-                                                 result.reflectance, result.ambient, self.scene.solver.resolution)
+                                                 result.reflectance, result.ambient, self.scene.solver.resolution,
+                                                 progress)
         weights = result.mesh.areas[elements]
         before = float(luminance(result.radiosity[elements]) @ weights)
         after = float(luminance(radiosity[elements]) @ weights)

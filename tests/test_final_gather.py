@@ -6,7 +6,7 @@ import yaml
 
 import hemirad
 from hemirad.geometry.split import split_triangles
-from hemirad.lighting.gathered import CONTACT_BAND, contact_band, gathered_radiosity
+from hemirad.lighting.gathered import CONTACT_BAND, GatherReport, contact_band, gathered_radiosity
 from hemirad.scene.loader import parse_scene
 from hemirad.scene.meshing import build_mesh
 from test_contacts import CORNELL_FOOTPRINTS, CORNELL_LIGHT, _distance_to_outline
@@ -99,8 +99,12 @@ def test_contacts_gather_only_the_band_and_say_so():
     scene.solver.error_samples = 0
     shot = hemirad.solve(scene)
     scene.solver.final_gather = "contacts"
-    gathered = hemirad.solve(scene)
+    reports = []
+    gathered = hemirad.solve(scene, progress=reports.append)
     band = contact_band(build_mesh(scene), gathered.mesh)
+    gathers = [r for r in reports if isinstance(r, GatherReport)]  # after every shot's report
+    assert gathers and reports[-len(gathers):] == gathers
+    assert gathers[-1].gathered == gathers[-1].elements == int(band.sum())
     changed = (gathered.radiosity != shot.radiosity).any(1)
     assert changed.any() and not changed[~band].any()
     said = gathered.stats["final_gather"]

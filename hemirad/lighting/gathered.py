@@ -21,12 +21,28 @@ escaped, unshot) stays the solve's, and stats.json says what the gathers changed
 """
 from __future__ import annotations
 
+import time
+from dataclasses import dataclass
+from typing import Callable
+
 import numpy as np
 import torch
 
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patches import hole_rims
 from hemirad.lighting.sensors import final_gather, sensor_renderer
+
+#: Gathers between two calls of the ``progress`` callback.
+REPORT_EVERY = 256
+
+
+@dataclass(frozen=True)
+class GatherReport:
+    """How far the final gathers are: ``gathered`` of ``elements``, after ``seconds``."""
+
+    gathered: int
+    elements: int
+    seconds: float
 
 #: ``contacts`` gathers the elements whose centroids lie within this share of the side of the
 #: initial element along a rim. Measured on the Cornell box refined by the answer to 17,958
@@ -60,18 +76,19 @@ def contact_band(initial: Mesh, mesh: Mesh, share: float = CONTACT_BAND) -> torc
 
 
 def finished_radiosity(mode: str, initial: Mesh, mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor,
-                       reflectance: torch.Tensor, ambient: torch.Tensor, resolution: int
-                       ) -> tuple[torch.Tensor, torch.Tensor]:
+                       reflectance: torch.Tensor, ambient: torch.Tensor, resolution: int,
+                       progress: Callable[[GatherReport], None] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(T, 3) the solution's ``radiosity`` finished as ``solver.final_gather`` ``mode``
     (``contacts`` or ``all``) asks, on ``mesh`` refined from ``initial``, and the (n,) int64
     elements gathered. The other arguments as ``gathered_radiosity``'s."""
     chosen = contact_band(initial, mesh) if mode == "contacts" else torch.ones(mesh.num_elements, dtype=torch.bool)
     elements = torch.nonzero(chosen).flatten()
-    return gathered_radiosity(mesh, radiosity, emission, reflectance, ambient, elements, resolution), elements
+    return gathered_radiosity(mesh, radiosity, emission, reflectance, ambient, elements, resolution, progress), elements
 
 
 def gathered_radiosity(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tensor, reflectance: torch.Tensor,
-                       ambient: torch.Tensor, elements: torch.Tensor, resolution: int) -> torch.Tensor:
+                       ambient: torch.Tensor, elements: torch.Tensor, resolution: int,
+                       progress: Callable[[GatherReport], None] | None = None) -> torch.Tensor:
     """(T, 3) ``radiosity`` with the ``elements`` (n,) int64 given the light a hemicube at their
     centroids gathers: B_k = E_k + rho_k sum_j F_kj (B_j + rho_j a) - rho_k a, so that what is
     shown (B + rho a, with the ambient radiosity ``ambient`` (3,)) is what the gather sees.
@@ -79,15 +96,23 @@ def gathered_radiosity(mesh: Mesh, radiosity: torch.Tensor, emission: torch.Tens
     Args:
         mesh: the solved mesh (T elements); radiosity, emission, reflectance: (T, 3) float64.
         resolution: the hemicubes' (their top face's side in pixels).
+        progress: called with a ``GatherReport`` every ``REPORT_EVERY`` gathers and at the end.
     """
     radiosity = radiosity.clone()
     elements = torch.as_tensor(elements, dtype=torch.int64)
     if len(elements) == 0:
         return radiosity
+    start = time.perf_counter()
     shown = radiosity + reflectance * ambient
     points = mesh.centroids[elements].cpu().numpy()
+    normals = mesh.normals[elements].cpu().numpy()
+    irradiance = []
     with sensor_renderer(mesh, points, resolution) as renderer:
-        gathered = final_gather(mesh, shown, points, mesh.normals[elements].cpu().numpy(), renderer=renderer)
+        for first in range(0, len(points), REPORT_EVERY):
+            part = slice(first, first + REPORT_EVERY)
+            irradiance.append(final_gather(mesh, shown, points[part], normals[part], renderer=renderer).irradiance)
+            if progress is not None:
+                progress(GatherReport(min(first + REPORT_EVERY, len(points)), len(points), time.perf_counter() - start))
     rho = reflectance[elements]
-    radiosity[elements] = emission[elements] + rho * gathered.irradiance - rho * ambient
+    radiosity[elements] = emission[elements] + rho * torch.cat(irradiance) - rho * ambient
     return radiosity
