@@ -14,7 +14,8 @@ from hemirad.core.errors import HemiradInputError, HemiradWarning
 from hemirad.geometry.patterns import PATTERN_CHOICES, describe_patterns
 from hemirad.lighting.gathered import GatherReport
 from hemirad.scene.loader import MAX_SURFACE_NAME, MAX_TRIANGLES, bundled_scenes, load_scene
-from hemirad.scene.model import CRITERION_NAMES, FINAL_GATHER_CHOICES, IMPORTANCE_CHOICES, RECONSTRUCTION_CHOICES, SMALL_RECEIVER_CHOICES
+from hemirad.scene.model import (CRITERION_NAMES, FINAL_GATHER_CHOICES, IMPORTANCE_CHOICES, RECONSTRUCTION_CHOICES,
+                                 SMALL_RECEIVER_CHOICES)
 from hemirad.scene.options import MAX_CACHE_MB, MAX_ROUND_GROWTH
 from hemirad.scene.sensorfile import read_sensor_file
 

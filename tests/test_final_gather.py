@@ -6,6 +6,7 @@ import yaml
 
 import hemirad
 from hemirad.geometry.split import split_triangles
+from hemirad.lighting import gathered as gathered_module
 from hemirad.lighting.gathered import CONTACT_BAND, GatherReport, contact_band, gathered_radiosity
 from hemirad.scene.loader import parse_scene
 from hemirad.scene.meshing import build_mesh
@@ -80,9 +81,10 @@ def test_the_contact_band_lies_along_the_footprints_and_the_light():
         assert not band[on & (distance > 2 * CONTACT_BAND * side)].any()
 
 
-def test_a_refined_mesh_is_banded_by_its_initial_rims():
+def test_a_refined_mesh_is_banded_by_its_initial_rims(monkeypatch):
     """Refined with hanging vertices, a mesh's split edges read as boundaries; the band is
-    measured from the initial mesh's rims, so it is the same region, finer."""
+    measured from the initial mesh's rims, so it is the same region, finer (and the same
+    taken a few distances at a time)."""
     scene = hemirad.load_scene("cornell_box").with_element_sizes_scaled(2.0)
     initial = build_mesh(scene)
     floor = initial.surface == initial.surface_names.index("floor")
@@ -92,6 +94,8 @@ def test_a_refined_mesh_is_banded_by_its_initial_rims():
     area = [float(m.areas[b].sum()) for m, b in ((initial, coarse), (refined, fine))]
     assert fine.sum() > coarse.sum()
     assert area[1] == pytest.approx(area[0], rel=0.25)
+    monkeypatch.setattr(gathered_module, "_PAIRS_AT_ONCE", 1000)
+    assert torch.equal(contact_band(initial, refined), fine)
 
 
 def test_contacts_gather_only_the_band_and_say_so():
