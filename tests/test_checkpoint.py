@@ -93,6 +93,19 @@ def test_a_run_of_sweeps_killed_and_resumed_equals_an_uninterrupted_one(tmp_path
     assert_identical(resumed, full)
 
 
+def test_a_resumed_run_is_finished_by_the_same_final_gathers(uninterrupted, tmp_path):
+    """The gathers come after the checkpoint's last write, from the solution it holds: a
+    resumed run makes them again, the same to the bit."""
+    full = hemirad.solve(scene(final_gather="all"))
+    assert not torch.equal(full.radiosity, uninterrupted[False].radiosity)  # the gathers changed it
+    path = tmp_path / checkpoints.FILENAME
+    with pytest.raises(KeyboardInterrupt):
+        hemirad.solve(scene(final_gather="all"), progress=stop_after(10), checkpoint=path, checkpoint_every=4)
+    resumed = hemirad.solve(scene(final_gather="all"), checkpoint=path, checkpoint_every=4, resume=True)
+    assert_identical(resumed, full)
+    assert resumed.stats["final_gather"] == full.stats["final_gather"]
+
+
 def test_a_finished_run_continues_with_more_shots(uninterrupted, tmp_path):
     path = tmp_path / checkpoints.FILENAME
     hemirad.solve(scene(shots=15), checkpoint=path)  # no cadence: saved once, at the end
