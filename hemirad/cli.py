@@ -243,21 +243,20 @@ class _Progress:
             if self.bar is not None and self.bar.unit == "shot":
                 self.close()
             if self.bar is None:
-                from tqdm import tqdm
-
-                self.bar = tqdm(total=report.elements, unit="gather", file=sys.stderr, dynamic_ncols=True,
-                                desc="final gathers")
+                self._open(report.elements, 0, "gather", desc="final gathers")
             self.bar.update(report.gathered - self.bar.n)
             return
         if self.bar is None:
-            from tqdm import tqdm
-
             if self.header:
                 print(self.header, file=sys.stderr)
-            self.bar = tqdm(total=self.total, initial=report.shots - 1, unit="shot", file=sys.stderr,
-                            dynamic_ncols=True)
+            self._open(self.total, report.shots - 1, "shot")
         self.bar.update(report.shots - self.bar.n)
         self.bar.set_postfix(unshot=f"{report.unshot_fraction:.2e}", elements=report.elements, refresh=False)
+
+    def _open(self, total: int, initial: int, unit: str, **options) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=total, initial=initial, unit=unit, file=sys.stderr, dynamic_ncols=True, **options)
 
     def close(self) -> None:
         if self.bar is not None:

@@ -31,6 +31,7 @@ import hemirad  # noqa: E402  (imported after the measurement above)
 from hemirad.evaluation.metrics import luminance  # noqa: E402
 from hemirad.evaluation.surface_points import elements_at  # noqa: E402
 from hemirad.geometry.mesh import barycentric  # noqa: E402
+from hemirad.scene.model import FINAL_GATHER_CHOICES  # noqa: E402
 
 
 def measure(scene_path: Path, points_path: Path, args) -> dict:
@@ -98,7 +99,7 @@ def main() -> None:
                         help="refine by the answer this many rounds (pattern 2; default 0: the scene's mesh)")
     parser.add_argument("--round-growth", type=float, default=None,
                         help="with --rounds, the most a round may grow the mesh (default: the scene's refine.round_growth)")
-    parser.add_argument("--final-gather", choices=("none", "contacts", "all"), default=None,
+    parser.add_argument("--final-gather", choices=FINAL_GATHER_CHOICES, default=None,
                         help="finish the solution by final gathers (solver.final_gather; default: the scene's)")
     parser.add_argument("--profile", action="store_true", help="print where the solve's time goes")
     parser.add_argument("--sort", default="tottime", help="the profile's order (pstats keys: tottime, cumulative, ...)")

@@ -184,15 +184,15 @@ def _footprints(segments: np.ndarray, outward: np.ndarray, tolerance: float) -> 
         a, edge, length = a[keep], edge[keep], length[keep]
         out = np.stack([edge[:, 1], -edge[:, 0]], axis=1) / length[:, None]  # right of a CCW ring: outside
         middle = a + 0.5 * edge
-        near = _point_segment_distance(middle, segments) <= tolerance  # (E, L)
+        near = point_segment_distances(middle, segments) <= tolerance  # (E, L)
         agrees = (out @ outward.T) > FACING_COSINE  # (E, L)
         if (near & agrees).any(axis=1).all():
             found.append(face)
     return found
 
 
-def _point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """(P, L) distances of (P, 2) points from (L, 2, 2) segments."""
+def point_segment_distances(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """(P, L) distances of (P, d) points from (L, 2, d) segments (in the plane, d = 2, or in space)."""
     a, b = segments[None, :, 0], segments[None, :, 1]
     ab = b - a
     t = ((points[:, None] - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-300)

@@ -28,6 +28,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from hemirad.geometry.footprints import point_segment_distances
 from hemirad.geometry.mesh import Mesh
 from hemirad.geometry.patches import hole_rims
 from hemirad.lighting.sensors import final_gather, sensor_renderer
@@ -66,15 +67,11 @@ def contact_band(initial: Mesh, mesh: Mesh, share: float = CONTACT_BAND) -> torc
     surface = mesh.surface.cpu().numpy()
     chosen = np.zeros(len(centroids), dtype=bool)
     for rim in rims:
-        start = vertices[rim.a][None]                     # (1, m, 3)
-        edge = (vertices[rim.b] - vertices[rim.a])[None]  # (1, m, 3)
-        reach = share * sides[rim.element][None]          # (1, m)
+        edges = np.stack([vertices[rim.a], vertices[rim.b]], axis=1)  # (m, 2, 3)
+        reach = share * sides[rim.element][None]  # (1, m)
         own = np.flatnonzero(surface == rim.surface)
         for part in np.array_split(own, max(1, -(-len(own) * len(rim.a) // _PAIRS_AT_ONCE))):
-            points = centroids[part][:, None]  # (k, 1, 3)
-            t = np.clip(((points - start) * edge).sum(-1) / (edge * edge).sum(-1), 0.0, 1.0)
-            distance = np.linalg.norm(points - (start + t[..., None] * edge), axis=-1)  # (k, m)
-            chosen[part] |= (distance < reach).any(1)
+            chosen[part] |= (point_segment_distances(centroids[part], edges) < reach).any(1)
     return torch.from_numpy(chosen)
 
 
