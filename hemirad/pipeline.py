@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from hemirad import checkpoint as checkpoints
-from hemirad.adaptive.answer import Display, RoundReport, element_errors, estimated_relative_error, refine_by_answer
+from hemirad.adaptive.answer import (Display, RoundReport, element_errors, estimated_relative_error, ranking_unshot,
+                                     refine_by_answer)
 from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver, refined_patches
 from hemirad.core.atomic import remove_stale_temporaries
@@ -676,6 +677,7 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
         shot_done = saver.after_shot(progress)
     refine_by_answer(solver, refiner, refine.max_elements, refine.tolerance, refine.rounds,
                      lambda: solver.run(options.max_shots, options.unshot_fraction, shot_done),
+                     rank_on=lambda: solver.run(options.max_shots, ranking_unshot(options.unshot_fraction), shot_done),
                      report=None if saver is None else (lambda _: saver.save()), reports=reports,
                      patches_for=lambda: refined_patches(scene, solver), estimate=stopping_estimate,
                      display=shown, importance=ranking_importance(scene))

@@ -279,6 +279,35 @@ def test_a_round_grows_the_mesh_no_more_than_its_fresh_solve_keeps_within_the_bu
         solver.close()
 
 
+def test_a_solve_that_only_ranks_stops_early_and_the_answer_is_converged():
+    # one round allowed: the first solve, which a split may follow, stops at the ranking's
+    # looser rule; the refined mesh's solve is the answer, to the run's rule. A run whose
+    # tolerance its first solve already meets makes no split and is shot on to the run's rule.
+    for tolerance in (0.0, 1.0):
+        solver, T, E = swept_box(1 << 30)
+        refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
+        made, unshot = [], []
+
+        def solve(kind, fraction):
+            made.append(kind)
+            solver.run(10_000, fraction)
+            unshot.append(solver.unshot_fraction)
+
+        try:
+            rounds = refine_by_answer(solver, refiner, 3 * T, tolerance, 1, lambda: solve("shoot", 1e-3),
+                                      rank_on=lambda: solve("rank", 1e-2), display=averaged,
+                                      patches_for=lambda: regrouped_patches(solver))
+        finally:
+            solver.close()
+        assert made == ["rank", "shoot"]
+        assert 1e-3 < unshot[0] <= 1e-2  # the ranking solve stopped short of the run's rule
+        assert solver.unshot_fraction <= 1e-3  # the answer is converged
+        if tolerance > 0:
+            assert [r.split for r in rounds] == [0] and solver.mesh.num_elements == T
+        else:
+            assert rounds[0].split > 0 and solver.mesh.num_elements > T
+
+
 def test_refinement_stops_where_a_further_round_would_outgrow_the_memory():
     # the closed box's first solve keeps more light than a round of MIN_MEMORY_GROWTH could
     # keep within the budget: no round is made, and the run says why

@@ -273,8 +273,8 @@ class PatchShooters:
         by_leaf = torch.zeros(len(self.tree.leaf), dtype=torch.float64, device=areas.device).index_add_(
             0, self.leaf, areas.to(torch.float64))
         before = torch.cat([by_leaf.new_zeros(1), by_leaf.cumsum(0)])
-        lo, hi = self.tree.lo.to(areas.device).index_select(0, noted), self.tree.hi.to(areas.device).index_select(0, noted)
-        node_area = before.index_select(0, hi) - before.index_select(0, lo)
+        node_area = (before.index_select(0, self.tree.hi.to(areas.device).index_select(0, noted))
+                     - before.index_select(0, self.tree.lo.to(areas.device).index_select(0, noted)))
         distance = self.light_distance.index_select(0, noted)
         order = torch.argsort(distance, stable=True)
         cumulative = node_area.index_select(0, order).cumsum(0)
