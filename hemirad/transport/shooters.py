@@ -148,7 +148,7 @@ class PatchShooters:
             refined mesh (``adaptive.answer``).
         light_distance: (N,) float64 how far each node's light travels: the mean distance
             from its centroid to its receivers' centroids, weighted by its row's form factors
-            (``note_row``); NaN for a node whose row was not made.
+            (``note_row``, where ``regroup`` is given); NaN for a node whose row was not made.
     """
 
     def __init__(self, tree: PatchTree, device: torch.device, split_test: ShooterTest | None = None,
@@ -257,7 +257,10 @@ class PatchShooters:
 
     def note_row(self, node: int, form_factors: torch.Tensor, centroids: torch.Tensor) -> None:
         """Note how far the light of ``node`` travels, given its row ``form_factors`` (T,) to
-        the receivers of (T, 3) ``centroids`` (``light_distance``)."""
+        the receivers of (T, 3) ``centroids`` (``light_distance``), where these patches will be
+        regrouped (``regroup``: the distance sizes the regrouped ones; elsewhere nothing asks)."""
+        if self.regroup is None:
+            return
         total = form_factors.sum()
         if float(total) > 0.0:
             distance = torch.linalg.vector_norm(centroids - self.tree.centroid[node].to(centroids), dim=1)
