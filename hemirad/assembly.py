@@ -2,8 +2,6 @@
 refiner, and the progressive solver over them (``make_solver``)."""
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 import torch
 
@@ -23,8 +21,7 @@ from hemirad.transport.solver import ProgressiveSolver
 #: ``solver.patch_size: auto`` makes patches of about this many elements a side,
 AUTO_PATCH_ELEMENTS = 2.0
 #: and, where refinement is judged on the answer, at most this share of the scene's smallest
-#: extent (the smallest side of its bounding box: a room's height; the refined solves' by
-#: ``REFINED_PATCH_LIGHT`` instead, where the first solve measured it). A patch shoots from one
+#: extent (the smallest side of its bounding box: a room's height). A patch shoots from one
 #: point, whose error grows with its size over its distance to what it lights; those
 #: distances follow the scene's size, not its elements', and once refined elements show the
 #: light finely the shooters' error is what is left. Measured (refinement judged on the answer
@@ -36,25 +33,9 @@ AUTO_PATCH_ELEMENTS = 2.0
 #: and floating (wall patches 1 m, capped to 0.4 m) it took 40% longer and moved the error by
 #: under 2%, the elements' own error being the larger there.
 AUTO_PATCH_SCENE = 0.15
-#: The refined solves' patches are at most this share of the distance the first solve's light
-#: travelled: the ``PatchShooters.median_light_distance`` of its nodes, each node's the mean
-#: distance to its receivers weighted by its form factors (a room's patches light the walls
-#: and floor across it, a box's its sides beside them). The scene's extent stands in for that
-#: distance alone, and the scenes differ: the Cornell box's light travels 0.525 of its
-#: extent, office's 0.886 of its height (a small lamp in a wide room), floating's 0.894. At
-#: 2/7 the Cornell box's patches are those of ``AUTO_PATCH_SCENE`` (its cap moves by 0.05%),
-#: office's and floating's grow to a quarter of their extent. Measured (runs from x2 to a
-#: third of the finest uniform mesh's elements; relative MSE against the references, seconds
-#: against the extent's cap in the same minutes): office 395 patches instead of 584, 0.000042
-#: (0.47x its finest's) in 11% fewer seconds, naming its finest's error 17% fewer; floating 215
-#: instead of 378, 0.000024 in 8% fewer; the Cornell box 346 either way, 0.000103. Its error
-#: moves by the patches' layout alone, by up to 5% either way: at 0.28 (343 patches) 0.000110,
-#: at 0.3 (348) 0.000108.
-REFINED_PATCH_LIGHT = 2.0 / 7.0
 #: The answer's first solve, which only ranks the elements for a round that will solve the
-#: refined mesh afresh, caps its patches at this share of the scene's extent instead; the
-#: refined solves regroup the initial elements (``refined_patches``, ``REFINED_PATCH_LIGHT``;
-#: measured below when they were capped at ``AUTO_PATCH_SCENE``). Measured (runs from x2
+#: refined mesh afresh, caps its patches at this share instead; the refined solves regroup
+#: the initial elements at ``AUTO_PATCH_SCENE`` (``refined_patches``). Measured (runs from x2
 #: to a third of the finest uniform mesh's elements, relMSE, seconds, each against the
 #: default in the same minutes): floating 0.000022 in 2.77 s against 2.98 s, naming its
 #: finest's error 0.000021 in 2.37-2.40 s against 2.57 s; office 0.000041 in 4.02 s against
@@ -128,34 +109,27 @@ def make_solver(scene: Scene, mesh: Mesh | None = None, *, device: torch.device 
 def make_patches(scene: Scene, mesh: Mesh, device: torch.device, emission: torch.Tensor | None = None) -> PatchShooters:
     """The patches of the initial ``mesh`` (of (T, 3) ``emission``, by default the scene's) as
     ``scene.solver`` asks, with the shooter tests; where refinement judged on the answer will
-    make a round, capped at ``FIRST_SOLVE_PATCH_SCENE`` for the first solve, with the refined
-    ones' made when their cap is known (``PatchShooters.regroup``, ``refined_patches``)."""
+    make a round, capped at ``FIRST_SOLVE_PATCH_SCENE`` for the first solve, with those of
+    ``AUTO_PATCH_SCENE`` kept for the refined ones (``PatchShooters.regroup``)."""
     owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]  # (T,) each element's object
+    tree = _patch_tree(scene, mesh, owner, AUTO_PATCH_SCENE)
     regroup = None
     if _will_refine(scene, mesh):
-        regroup = functools.partial(_regrouped, scene, mesh, owner)
-        tree = _patch_tree(scene, mesh, owner, FIRST_SOLVE_PATCH_SCENE * scene_extent(mesh))
-    else:
-        tree = _patch_tree(scene, mesh, owner)
+        regroup = tree.patch
+        tree = _patch_tree(scene, mesh, owner, FIRST_SOLVE_PATCH_SCENE)
     emission = emission_table(scene, mesh)[mesh.material] if emission is None else emission
     return PatchShooters(tree, device, shooter_test(scene), source_corners=mesh.corners,
                          eye_level=emitter_eye_level(scene, mesh, emission), regroup=regroup)
 
 
-def _patch_tree(scene: Scene, mesh: Mesh, owner: np.ndarray, cap: float | None = None) -> PatchTree:
+def _patch_tree(scene: Scene, mesh: Mesh, owner: np.ndarray, cap: float) -> PatchTree:
     """The patches of ``mesh`` (``owner`` (T,) each element's object), the answer's ``auto``
-    sizes at most ``cap`` long (``patch_sizes``)."""
+    sizes capped at ``cap`` of the scene's smallest extent."""
     size = patch_sizes(scene, mesh, owner, cap)
     apart = rim_stretches(scene, mesh, size)
     if apart is not None:
         size[apart < 0] = 0.0  # at a footprint's corners
     return build_patches(mesh, size, owner, apart)
-
-
-def _regrouped(scene: Scene, mesh: Mesh, owner: np.ndarray, cap: float | None) -> torch.Tensor:
-    """(T,) the patch each element of the initial ``mesh`` joins in the refined solves, their
-    ``auto`` sizes at most ``cap`` long (``PatchShooters.regroup``)."""
-    return _patch_tree(scene, mesh, owner, cap).patch
 
 
 def _will_refine(scene: Scene, mesh: Mesh) -> bool:
@@ -234,10 +208,8 @@ def refined_patches(scene: Scene, solver: ProgressiveSolver, saved: dict | None 
     shooting from its patches' centroids 0.00025."""
     mesh, patches = solver.mesh, solver.patches
     group, source = (patches.patch, patches.source) if saved is None else (saved["patch"], saved["source"])
-    if saved is None and patches.regroup is not None:  # after the first solve's larger patches
-        distance = patches.median_light_distance(mesh.areas)
-        cap = None if distance is None else REFINED_PATCH_LIGHT * distance
-        group = patches.regroup(cap).to(source.device).index_select(0, source)
+    if saved is None and patches.regroup is not None:  # the first solve's larger patches
+        group = patches.regroup.to(source.device).index_select(0, source)
     group = group.cpu().numpy().copy()
     owner = surface_objects(scene, mesh)[mesh.surface.cpu().numpy()]
     alone = (solver.emission > 0).any(dim=1).cpu().numpy() | (patch_sizes(scene, mesh, owner) <= 0)
@@ -256,12 +228,11 @@ def scene_extent(mesh: Mesh) -> float:
     return float(sides.min()) if len(sides) else float("inf")
 
 
-def patch_sizes(scene: Scene, mesh: Mesh, owner: np.ndarray, cap: float | None = None) -> np.ndarray:
+def patch_sizes(scene: Scene, mesh: Mesh, owner: np.ndarray, cap: float = AUTO_PATCH_SCENE) -> np.ndarray:
     """(T,) the patch side each element asks for: its object's (``owner`` (T,), the index in
     ``scene.objects`` of each element's) ``patch_size``, else the solver's; ``auto`` is
-    ``AUTO_PATCH_ELEMENTS`` element sides (refining by the answer, at most ``cap`` long; None:
-    ``AUTO_PATCH_SCENE`` times the mesh's smallest extent, ``scene_extent``), ``none`` 0 (it
-    shoots alone)."""
+    ``AUTO_PATCH_ELEMENTS`` element sides (refining by the answer, at most ``cap`` times the
+    mesh's smallest extent, ``scene_extent``), ``none`` 0 (it shoots alone)."""
     asked = [obj.patch_size if obj.patch_size is not None else scene.solver.patch_size for obj in scene.objects]
     # per object: a multiple of the element side (auto) and a length (a number), one of them 0
     factor = np.asarray([AUTO_PATCH_ELEMENTS if size == "auto" else 0.0 for size in asked])
@@ -271,5 +242,5 @@ def patch_sizes(scene: Scene, mesh: Mesh, owner: np.ndarray, cap: float | None =
     nominal = np.asarray([obj.element_size if isinstance(obj, MeshFile) else 0.0 for obj in scene.objects])
     auto = factor[owner] * np.maximum(element_sides(mesh), nominal[owner])
     if scene.refines_by_answer:
-        auto = np.minimum(auto, AUTO_PATCH_SCENE * scene_extent(mesh) if cap is None else cap)
+        auto = np.minimum(auto, cap * scene_extent(mesh))
     return auto + length[owner]

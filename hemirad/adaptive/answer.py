@@ -238,11 +238,12 @@ GENERATIONS = 2
 #: times the run's unshot fraction (``rank_on``; 1e-2 at the default 1e-3): the light still
 #: unshot is spread thin, and moves the interpolation errors that rank the elements little.
 #: Measured (runs from x2 to a third of the finest uniform mesh's elements, relMSE as a
-#: multiple of the finest's, seconds against the ranking solve converged, in the same minutes):
-#: office 0.472x either way in 0.94 of the seconds, the Cornell box 0.977x against 0.984x in
-#: 0.89, floating naming its finest's error 0.766x against 0.777x in 0.95; at 30 and 100
-#: times the errors the same (the Cornell box 0.970x, 0.969x), the seconds no fewer (the
-#: sweeps past 1e-2 reuse kept rows).
+#: multiple of the finest's, seconds against the ranking solve converged, in the same
+#: minutes, with refined patches then larger: docs/MEASUREMENTS.md): office 0.472x either
+#: way in 0.94 of the seconds, the Cornell box 0.977x against 0.984x in 0.89, floating naming
+#: its finest's error 0.766x against 0.777x in 0.95; at 30 and 100 times the errors the same
+#: (the Cornell box 0.970x, 0.969x), the seconds no fewer (the sweeps past 1e-2 reuse kept
+#: rows).
 RANKING_UNSHOT = 10.0
 
 

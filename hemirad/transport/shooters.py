@@ -131,11 +131,9 @@ class PatchShooters:
             equal parts of each (``eye_points``; its row the mean of theirs) instead of its
             centroid: a lamp's penumbrae are then those of a lamp meshed 2**eye_level times
             finer, without its elements.
-        regroup: optional, where the patches of the mesh refined and solved afresh differ from
-            ``tree``'s (the answer's first solve shoots from larger patches): given the side
-            the refined patches may have at most (a length; None: the scene's own cap), the
-            patch (T,) int64 each element of the tree's mesh joins then
-            (``assembly.refined_patches``, which sizes them by ``median_light_distance``).
+        regroup: (T,) int64, optional: the patch each element of the tree's mesh joins when
+            the mesh is refined and solved afresh (``assembly.refined_patches``), where that
+            differs from ``tree``'s (the answer's first solve shoots from larger patches).
     Attributes:
         leaf, patch, source: (T,) int64 each element's leaf position, patch and source
             (children inherit their parent's).
@@ -146,15 +144,11 @@ class PatchShooters:
             shot's power was made of, which spreads a node's light to its near receivers.
             With ``sent``, what every receiver got from every node can be recomputed on a
             refined mesh (``adaptive.answer``).
-        light_distance: (N,) float64 how far each node's light travels: the mean distance
-            from its centroid to its receivers' centroids, weighted by its row's form factors
-            (``note_row``, where ``regroup`` is given); NaN for a node whose row was not made.
     """
 
     def __init__(self, tree: PatchTree, device: torch.device, split_test: ShooterTest | None = None,
                  source: torch.Tensor | None = None, source_corners: torch.Tensor | None = None,
-                 source_split: str | None = None, eye_level: int = 0,
-                 regroup: Callable[[float | None], torch.Tensor] | None = None):
+                 source_split: str | None = None, eye_level: int = 0, regroup: torch.Tensor | None = None):
         self.tree = tree
         self.eye_level = eye_level
         self.regroup = regroup
@@ -174,7 +168,6 @@ class PatchShooters:
         self._bounds = list(zip(tree.lo.tolist(), tree.hi.tolist()))  # per node (lo, hi), as ints
         self.sent = torch.zeros(tree.num_nodes, 3, dtype=torch.float64, device=device)
         self.sent_by_leaf = torch.zeros(len(tree.leaf), 3, dtype=torch.float64, device=device)
-        self.light_distance = torch.full((tree.num_nodes,), float("nan"), dtype=torch.float64, device=device)
 
     @property
     def leaf(self) -> torch.Tensor:
@@ -255,35 +248,6 @@ class PatchShooters:
         self.sent[node] += member_power.sum(0)
         self.sent_by_leaf.index_add_(0, self.leaf.index_select(0, members), member_power)
 
-    def note_row(self, node: int, form_factors: torch.Tensor, centroids: torch.Tensor) -> None:
-        """Note how far the light of ``node`` travels, given its row ``form_factors`` (T,) to
-        the receivers of (T, 3) ``centroids`` (``light_distance``), where these patches will be
-        regrouped (``regroup``: the distance sizes the regrouped ones; elsewhere nothing asks)."""
-        if self.regroup is None:
-            return
-        total = form_factors.sum()
-        if float(total) > 0.0:
-            distance = torch.linalg.vector_norm(centroids - self.tree.centroid[node].to(centroids), dim=1)
-            self.light_distance[node] = (form_factors * distance).sum() / total
-
-    def median_light_distance(self, areas: torch.Tensor) -> float | None:
-        """The ``light_distance`` that the nodes noted hold over half of their area: by the
-        elements' (T,) ``areas`` (of the current mesh, summed by their leaf positions); None
-        where no node noted one."""
-        noted = flatnonzero(~torch.isnan(self.light_distance))
-        if len(noted) == 0:
-            return None
-        by_leaf = torch.zeros(len(self.tree.leaf), dtype=torch.float64, device=areas.device).index_add_(
-            0, self.leaf, areas.to(torch.float64))
-        before = torch.cat([by_leaf.new_zeros(1), by_leaf.cumsum(0)])
-        node_area = (before.index_select(0, self.tree.hi.to(areas.device).index_select(0, noted))
-                     - before.index_select(0, self.tree.lo.to(areas.device).index_select(0, noted)))
-        distance = self.light_distance.index_select(0, noted)
-        order = torch.argsort(distance, stable=True)
-        cumulative = node_area.index_select(0, order).cumsum(0)
-        half = int(torch.searchsorted(cumulative, 0.5 * cumulative[-1]))
-        return float(distance.index_select(0, order)[min(half, len(order) - 1)])
-
     def record_sweep(self, node_of_leaf: torch.Tensor, leaf_power: torch.Tensor) -> None:
         """Count a sweep in which every initial element shot (T0, 3) ``leaf_power`` (by leaf
         position) from its node ``node_of_leaf`` (T0,; -1 where it shot nothing)."""
@@ -363,7 +327,7 @@ class PatchShooters:
         return {"leaf": self.leaf.cpu().clone(), "patch": self.patch.cpu().clone(), "source": self.source.cpu().clone(),
                 "cut_patches": torch.tensor(patches, dtype=torch.int64), "cut_sizes": sizes, "cut_nodes": nodes,
                 "shooter_splits": self.shooter_splits, "sent": self.sent.cpu().clone(),
-                "sent_by_leaf": self.sent_by_leaf.cpu().clone(), "light_distance": self.light_distance.cpu().clone()}
+                "sent_by_leaf": self.sent_by_leaf.cpu().clone()}
 
     def load_state_dict(self, state: dict, num_elements: int) -> None:
         """Continue from ``state_dict()``'s output for a mesh of ``num_elements``; ValueError if it does not fit."""
@@ -381,9 +345,8 @@ class PatchShooters:
         self._sources.clear()
         self.cuts = {int(p): part.tolist() for p, part in zip(patches, torch.split(nodes, sizes.tolist()))}
         self.shooter_splits = int(state["shooter_splits"])
-        for name in ("sent", "sent_by_leaf", "light_distance"):
+        for name in ("sent", "sent_by_leaf"):
             rows, want = state.get(name), getattr(self, name)
             if not isinstance(rows, torch.Tensor) or rows.shape != want.shape or rows.dtype != torch.float64:
                 raise ValueError(f"patches.{name} must be a {tuple(want.shape)} float64 tensor")
         self.sent, self.sent_by_leaf = state["sent"].to(device), state["sent_by_leaf"].to(device)
-        self.light_distance = state["light_distance"].to(device)

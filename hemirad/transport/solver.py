@@ -44,8 +44,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
-#: 27: the refined solves' patches are capped at a share of the distance the first solve's
-#: light travelled (``assembly.REFINED_PATCH_LIGHT``), not of the scene's extent;
+#: 27: a round's solve that refinement judged on the answer follows with a split stops at
+#: ten times the unshot fraction (``answer.RANKING_UNSHOT``);
 #: 26: refinement judged on the answer ranks the elements by their error over the three
 #: colour channels, not by luminance, weighed by the camera's pixels (refine.importance), and
 #: sizes a round for 0.8 of its tolerance; its first solve shoots from patches capped at 0.3
@@ -625,15 +625,8 @@ class ProgressiveSolver:
         """(T,) the row ``shooter`` shoots with (``node_row``) given its ``view``, kept with the view."""
         self._keep_view(shooter, view)
         F = self.node_row(shooter, view)
-        self._keep_row(shooter, F)
-        return F
-
-    def _keep_row(self, shooter: int, F: torch.Tensor) -> None:
-        """Keep the row F (T,) of ``shooter`` for its later shots, its patches noting how far
-        its light travels (``PatchShooters.note_row``: the refined solves' patches are sized by it)."""
         self.rows.put(shooter, F)
-        if self.patches is not None:
-            self.patches.note_row(shooter, F, self.mesh.centroids)
+        return F
 
     def node_row(self, shooter: int, view: HemicubeView, among: torch.Tensor | None = None) -> torch.Tensor:
         """(T,) the row ``shooter`` (its hemicube's ``view``) shoots with: the view's
@@ -715,7 +708,7 @@ class ProgressiveSolver:
                 batch[node] = ([(v, limit, weight) for v, weight in self._eye_views(node, view, eyes)]
                                if eyes is not None else [(view, limit, 1.0)])
                 continue
-            self._keep_row(node, F)
+            self.rows.put(node, F)
             nodes[node] = (F, view)
         shooters = ({node: self._near_shooter(node, F, view) for node, (F, view) in nodes.items()}
                     if self.near_reach > 0 else {})
@@ -731,7 +724,7 @@ class ProgressiveSolver:
         with self.profiler.phase("update"):
             rows, near = light.result()
             for node, F in rows.items():
-                self._keep_row(node, F)
+                self.rows.put(node, F)
                 nodes[node] = (F, nodes[node][1])
             self._near.update(near)
             for node, (F, _) in nodes.items():
