@@ -251,6 +251,8 @@ def ranking_unshot(unshot_fraction: float) -> float:
     """The unshot fraction a solve that only ranks stops at, for a run's ``unshot_fraction``:
     ``RANKING_UNSHOT`` times it, at most 1e-2 (the looser rule measured), never below it."""
     return max(unshot_fraction, min(RANKING_UNSHOT * unshot_fraction, 1e-2))
+
+
 #: A round that would grow the mesh by less than this share is not made: it is a fresh solve
 #: of the whole mesh for a sliver of it. Measured: office from the shipped mesh to 3,701
 #: elements, whose first round's grading left 3,692, then made rounds of 6 and 3 elements,
@@ -381,7 +383,7 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
                                                growth) <= 0
         ranked_only = not last and rank_on is not None
         (rank_on if ranked_only else shoot_on)()
-        shown = solver.state.radiosity  # the ambient term is negligible once converged
+        shown = solver.state.radiosity  # the ambient term is negligible once converged (a ranking solve's 1e-2 too)
         # the elements' errors rank a round's splits, and make the interpolation estimate where
         # none is given: in a last round with an estimate they are not needed
         if not last or estimate is None:
