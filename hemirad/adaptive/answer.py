@@ -375,7 +375,7 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
     checkpoint passes the rounds it had finished and goes on with the next (its solver
     holds their mesh and light)."""
     reports = [] if reports is None else reports
-    ranked_only = False  # whether the last round's solve only ranked
+    ranked_only = False  # whether the last round's solve only ranked (a split is always followed by a round)
     for index in range(len(reports), rounds + 1):
         mesh = solver.mesh
         growth = refiner.options.round_growth
@@ -422,7 +422,6 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
             solver.adopt_split(new_mesh, parent)
             solver.restart(patches_for())
         reports[-1].split = solver.mesh.num_elements - mesh.num_elements
-        ranked_only = False  # the split mesh is solved afresh
         if report is not None:
             report(reports[-1])
     if ranked_only:  # the rounds stopped after a solve that only ranked: its answer is the run's
