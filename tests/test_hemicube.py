@@ -1,6 +1,8 @@
 """The hemicube renderer: per-face frustum culling changes no pixel."""
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -16,7 +18,8 @@ from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport import solver as solver_module
 from hemirad.transport.solver import ProgressiveSolver
 from hemirad.transport import sweep as sweep_module
-from hemirad.transport.sweep import group_light
+from hemirad.transport.nearfield import NearShooter
+from hemirad.transport.sweep import GroupLight, make_a_part
 
 from patches import refined_solve
 
@@ -127,25 +130,69 @@ def test_a_sweep_gives_the_same_numbers_however_far_its_worker_lags(monkeypatch)
 
 
 def test_the_drawing_thread_makes_what_the_lagging_worker_has_not_begun_with_the_same_numbers(monkeypatch):
-    # a worker slowed down: the drawing thread makes the newest groups instead of waiting
-    # (sweep.make_newest_here); the numbers are those of a run whose worker made them all
+    # a worker slowed down: the drawing thread makes parts of the groups instead of waiting
+    # (sweep.make_a_part); the numbers are those of a run whose worker made them all
     made_by = []
 
-    def slow_on_the_worker(*args):
-        worker = threading.current_thread().name.startswith("hemirad-sweep")
-        made_by.append("worker" if worker else "drawing")
-        if worker:
-            time.sleep(0.05)
-        return group_light(*args)
-    monkeypatch.setattr(sweep_module, "group_light", slow_on_the_worker)
+    def slowed_on_the_worker(make):
+        def slowed(*args, **kwargs):
+            worker = threading.current_thread().name.startswith("hemirad-sweep")
+            made_by.append("worker" if worker else "drawing")
+            if worker:
+                time.sleep(0.02)
+            return make(*args, **kwargs)
+        return slowed
+    for part in ("small_receiver_rows", "near_fields"):
+        monkeypatch.setattr(sweep_module, part, slowed_on_the_worker(getattr(sweep_module, part)))
     shared = _solve_office_in_sweeps()
     assert made_by.count("drawing") > 0 and made_by.count("worker") > 0, made_by
     made_by.clear()
-    monkeypatch.setattr(solver_module, "make_newest_here", lambda groups: False)  # wait for the worker
+    monkeypatch.setattr(solver_module, "make_a_part", lambda groups: False)  # wait for the worker
     worker_only = _solve_office_in_sweeps()
     assert made_by.count("drawing") == 0
     assert torch.equal(shared.state.radiosity, worker_only.state.radiosity)
     assert torch.equal(shared.state.unshot, worker_only.state.unshot)
+
+
+def test_a_group_made_part_by_part_by_two_threads_gives_what_one_thread_makes(monkeypatch):
+    # GroupLight's parts (its rows a batch of views at a time, then its near fields) taken by
+    # whichever thread comes first: the rows assembled in view order (a lamp's eyes summed by
+    # their weights), the near fields made from them, and a part's error raised where the
+    # group is taken in, not lost on the worker. Views are numbers here, their rows constants.
+    made_by = []
+
+    def rows_of(views, corners, areas, limits):
+        made_by.append(threading.current_thread().name)
+        time.sleep(0.02)
+        if -1 in views:
+            raise ValueError("a view that cannot be read")
+        return [torch.full((4,), 1.0 / view) for view in views]
+    monkeypatch.setattr(sweep_module, "small_receiver_rows", rows_of)
+    monkeypatch.setattr(sweep_module, "near_fields", lambda mesh, shooters, reach, totals: [
+        float(s.form_factors.sum()) for s in shooters])
+    mesh = SimpleNamespace(corners=None, areas=None)
+    lamp_eyes = [(view, 0.1, 0.3) for view in range(2, 22)]  # 20 views: with the one below, three batches
+    small = {7: [(1, 0.1, 1.0)], 9: lamp_eyes}
+    shooters = {node: NearShooter(None, None, None, None, None, None) for node in (7, 9)}
+    shooters[8] = NearShooter(None, None, None, None, None, torch.ones(4))
+    expected_lamp = torch.zeros(4)
+    for view, _, weight in lamp_eyes:
+        expected_lamp.add_(weight * torch.full((4,), 1.0 / view))
+
+    def made(shared: bool, views: dict):
+        with ThreadPoolExecutor(1, thread_name_prefix="hemirad-sweep") as worker:
+            light = GroupLight(worker, mesh, views, shooters, 1.0, "area")
+            while shared and not light.done() and make_a_part([light]):
+                pass
+            return light.result()
+    for shared in (False, True):
+        made_by.clear()
+        rows, near = made(shared, small)
+        assert torch.equal(rows[7], torch.ones(4)) and torch.equal(rows[9], expected_lamp)
+        assert near == {7: 4.0, 9: float(expected_lamp.sum()), 8: 4.0}
+        assert len(made_by) == 3 and ("MainThread" in made_by) == shared, made_by
+    with pytest.raises(ValueError, match="cannot be read"):
+        made(True, {7: [(-1, 0.1, 1.0)], 9: lamp_eyes})
 
 
 def test_a_sweep_outgrowing_its_memory_gives_the_same_numbers_however_slow_its_worker(monkeypatch):
@@ -165,10 +212,12 @@ def test_a_sweep_outgrowing_its_memory_gives_the_same_numbers_however_slow_its_w
         return solver, drawn[0]
     quick, quick_stop = solve_and_stopping_point()
 
-    def slow_group_light(*args):
+    near_fields = sweep_module.near_fields
+
+    def slow_near_fields(*args):
         time.sleep(0.05)
-        return group_light(*args)
-    monkeypatch.setattr(sweep_module, "group_light", slow_group_light)
+        return near_fields(*args)
+    monkeypatch.setattr(sweep_module, "near_fields", slow_near_fields)
     slow, slow_stop = solve_and_stopping_point()
     assert quick_stop == slow_stop > 0
     assert torch.equal(quick.state.radiosity, slow.state.radiosity)

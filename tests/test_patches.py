@@ -390,7 +390,7 @@ def test_emitter_eyes_draw_the_penumbra_its_elements_centroids_cannot():
 
 def test_a_sweep_makes_a_lamps_eye_rows_on_its_worker_as_single_shots_make_them():
     # In sweeps a lamp's eyes are drawn on the drawing thread and their rows made with their
-    # group's on the worker, summed by their weights (``sweep.group_light``): the rows and the
+    # group's on the worker, summed by their weights (``sweep.GroupLight``): the rows and the
     # light shots one at a time give, to the last bits a batch rounds otherwise.
     mesh, rho, E, on_floor, expected, penumbra = penumbra_setup(0.1)
     made = []

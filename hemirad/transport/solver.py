@@ -34,7 +34,7 @@ from hemirad.transport.renderer import HemicubeRenderer
 from hemirad.transport.rowcache import FormFactorRows
 from hemirad.transport.shooters import PatchShooters, eye_points
 from hemirad.transport.smallreceivers import BOUNCE_MAX_PIXELS, MAX_PIXELS, small_receiver_form_factors
-from hemirad.transport.sweep import GroupLight, SweepTransport, make_newest_here
+from hemirad.transport.sweep import GroupLight, SweepTransport, make_a_part
 from hemirad.transport.view import HemicubeView
 
 # The phases a solve's time is reported in (``ProgressiveSolver.timings``, stats.json).
@@ -88,8 +88,8 @@ NEAR_BATCH = 32
 #: (``ProgressiveSolver._make_group``), which runs at the lowest priority (``_yield_to_drawing``):
 #: the light is needed at the sweep's end, the drawing thread and Mesa's two threads are the
 #: sweep's critical path, and the worker takes what cores they leave. Where the drawing
-#: thread would wait for it, it makes the newest groups the worker has not begun
-#: (``sweep.make_newest_here``), so a short lead costs no time and holds fewer views.
+#: thread would wait for it, it makes the parts of the groups that the worker has not begun
+#: (``sweep.make_a_part``), so a short lead costs no time and holds fewer views.
 #: Measured on 2 cores (interleaved runs, seconds and peak memory), 8 groups ahead against 2:
 #: the furnished room 9.5 / 9.3 s, 1.67 / 1.50 GB against 9.4 / 9.4 s, 1.51 / 1.43 GB; refined
 #: once by the answer 79.6 s, 3.57 GB against 81.2 s, 3.28 GB; the study's floating and office
@@ -521,8 +521,8 @@ class ProgressiveSolver:
         # A group's rows and near fields are made on a worker thread while this one draws the
         # next groups' hemicubes (``_make_group``, up to ``GROUPS_AHEAD``): torch's kernels let
         # go of the interpreter, and the near fields' contour integrals are mostly kernel. While
-        # this thread would wait for the oldest group, it makes the newest the worker has not
-        # begun (``make_newest_here``).
+        # this thread would wait for the oldest group, it makes parts of it, or of the groups
+        # after it, that the worker has not begun (``make_a_part``).
         groups = sorted({patch // NEAR_BATCH for patch in shooting.tolist()} - transport.groups)
         order = [patch for g in groups for patch in range(g * NEAR_BATCH, min((g + 1) * NEAR_BATCH, tree.num_patches))]
         new: dict[int, tuple[torch.Tensor, HemicubeView | None]] = {}  # the group's nodes: (F, view)
@@ -531,7 +531,7 @@ class ProgressiveSolver:
         kept_before = transport.nbytes
 
         def take_in() -> None:
-            while not making[0][1].done() and make_newest_here([light for _, light in making]):
+            while not making[0][1].done() and make_a_part([light for _, light in making]):
                 pass
             before = transport.nbytes
             self._join_group(making.popleft())
@@ -588,7 +588,7 @@ class ProgressiveSolver:
                 state.unshot.zero_()
             else:
                 state.unshot.masked_fill_(~held[:, None], 0.0)
-            self._receive_incident(transport.incident(leaf_power), leaf_power.sum(0))
+            self._receive_incident(transport.incident(leaf_power, self._worker), leaf_power.sum(0))
         state.shots += len(shooting)
         self.sweep_count += 1
         return int(torch.argmax(magnitude))
@@ -691,8 +691,8 @@ class ProgressiveSolver:
         """Start making a sweep group's rows and near fields: the ``nodes`` (node -> (row or
         None, view)) without a row get one (``node_row``). The hemicubes (a lamp's eyes' too) are
         drawn here, and rows of pixel sums made; the rows of small receivers (a lamp's, from
-        its eyes' views: ``sweep.group_light`` sums them) and the near fields on the worker
-        thread, or this one where it would wait for them (``sweep.GroupLight``), which touch
+        its eyes' views: ``sweep.GroupLight`` sums them) and the near fields on the worker
+        thread, and this one where it would wait for them (``sweep.GroupLight``), which touch
         no state of the solver: taken in by ``_join_group``. Made here, a lamp's eyes' rows
         held the drawing thread 0.2-0.3 s a solve on floating refined by the answer, while the
         worker waited for its group."""
@@ -788,7 +788,7 @@ class ProgressiveSolver:
     def _near_shooter(self, shooter: int, F: torch.Tensor | None, view: HemicubeView | None) -> NearShooter:
         """What ``nearfield`` needs of ``shooter`` (an element, or a node of the patches) shooting
         the row F (T,) seen in ``view`` (None: the one kept for it, else a new render); F None:
-        to be filled in (``sweep.group_light``)."""
+        to be filled in (``sweep.GroupLight``)."""
         if view is None:
             view = self._views.pop(shooter, None)
         if view is None:

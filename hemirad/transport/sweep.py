@@ -16,13 +16,14 @@ lo..lo + k - 1 of its leaf positions [lo, hi), and P (T0, 3) those sources' powe
 matrices are kept sorted by (receiver, column), whatever order the nodes were added in, so a
 sum over them is the same bit for bit in a run resumed from a checkpoint.
 
-What a group of nodes adds (their rows' small receivers and their near fields) is made by
-``group_light``, a function of the mesh and the nodes' views alone, so the solver runs it on
-a worker thread while it draws the next group's hemicubes, and where it would wait for the
-worker, on its own (``GroupLight``).
+What a group of nodes adds (their rows' small receivers and their near fields) is made in
+parts that are functions of the mesh and the nodes' views alone (``GroupLight``), so a worker
+thread makes them while the solver draws the next group's hemicubes, and the solver makes
+them too where it would wait for the worker.
 """
 from __future__ import annotations
 
+import threading
 import warnings
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -39,7 +40,7 @@ from hemirad.transport.view import HemicubeView
 # Bytes an entry of the matrices costs: an int32 column index and a float64 value (int32
 # indices: a third less memory than int64 before a sweep outgrows ``solver.cache_mb``).
 ENTRY_BYTES = 12
-#: A sweep group's small-receiver rows are made this many nodes at a pass (``group_light``).
+#: A sweep group's small-receiver rows are made this many views at a pass, a part of its ``GroupLight``.
 ROW_BATCH = 8
 
 
@@ -146,30 +147,40 @@ class SweepTransport:
         self.nbytes += ENTRY_BYTES * (len(far_index) + weights.numel())
         self._matrices = None
 
-    def _merge(self) -> None:
-        """Merge the nodes added since into the matrices."""
+    def _merge(self, worker: ThreadPoolExecutor | None) -> None:
+        """Merge the nodes added since into the matrices, the far one on the ``worker`` where
+        there is one while this thread merges the near one (a sweep's end, nothing else to do)."""
         nodes = sorted(self._pending)
         lights = [self._pending.pop(n) for n in nodes]
+        far = worker.submit(self._merge_far, nodes, lights) if worker is not None else None
+        if far is None:
+            self._merge_far(nodes, lights)
+        near_columns = self._near.shape[1]
+        with_near = [light for light in lights if light.near_rows.numel()]
+        del lights  # the pending light, in the keys and values from here
+        if with_near:
+            near_key = torch.cat([light.near_rows.repeat(len(light.near_weights)) * near_columns
+                                  + (light.lo + torch.arange(len(light.near_weights), device=self.device)
+                                     ).repeat_interleave(len(light.near_rows)) for light in with_near])
+            near_values = torch.cat([light.near_weights.reshape(-1) for light in with_near])
+            del with_near
+            self._near.merge(near_key, near_values)
+        if far is not None:
+            far.result()
+
+    def _merge_far(self, nodes: list[int], lights: list[_NodeLight]) -> None:
         far_columns = self._far.shape[1]
         far_key = torch.cat([light.far_index.long() * far_columns + node for node, light in zip(nodes, lights)])
         far_values = torch.cat([light.far_values for light in lights])
-        near_columns = self._near.shape[1]
-        lights = [light for light in lights if light.near_rows.numel()]
-        near_key = torch.cat([light.near_rows.repeat(len(light.near_weights)) * near_columns
-                              + (light.lo + torch.arange(len(light.near_weights), device=self.device)
-                                 ).repeat_interleave(len(light.near_rows)) for light in lights]) if lights else None
-        near_values = torch.cat([light.near_weights.reshape(-1) for light in lights]) if lights else None
-        del lights  # the pending light, now in the keys and values
+        del lights
         self._far.merge(far_key, far_values)
-        del far_key, far_values
-        if near_key is not None:
-            self._near.merge(near_key, near_values)
 
-    def incident(self, leaf_power: torch.Tensor) -> torch.Tensor:
+    def incident(self, leaf_power: torch.Tensor, worker: ThreadPoolExecutor | None = None) -> torch.Tensor:
         """(T, 3) the power reaching every receiver's front when every leaf shoots its (T0, 3)
-        ``leaf_power`` from its node; every leaf with power must have a node."""
+        ``leaf_power`` from its node; every leaf with power must have a node; a ``worker``
+        thread merges the far matrix (``_merge``)."""
         if self._matrices is None:
-            self._merge()
+            self._merge(worker)
             self._matrices = (self._far.matrix(), self._near.matrix())
         far, near = self._matrices
         node = self.node_of_leaf
@@ -184,70 +195,112 @@ class SweepTransport:
         return incident + near @ torch.zeros_like(leaf_power).index_add_(0, self.column_of_leaf, leaf_power)
 
 
-def group_light(mesh: Mesh, small: dict[int, list[tuple[HemicubeView, float, float]]],
-                shooters: dict[int, NearShooter], reach: float, totals: str
-                ) -> tuple[dict[int, torch.Tensor], dict[int, NearReceivers]]:
-    """What a sweep group's nodes send, made apart from the solver (on its worker thread):
-    the rows F_sj (T,) of the ``small`` nodes (node -> its views, each (view, pixel limit,
-    weight): one view of weight 1, its hemicube's, or a lamp's eyes, whose rows the node's
-    sums by their weights), ``small_receiver_rows`` ``ROW_BATCH`` views a pass, then the
+class GroupLight:
+    """What a sweep group's nodes send, made apart from the solver: the rows F_sj (T,) of the
+    ``small`` nodes (node -> its views, each (view, pixel limit, weight): one view of weight 1,
+    its hemicube's, or a lamp's eyes, whose rows the node's sums by their weights), then the
     near fields of the nodes of ``shooters`` (node -> what ``nearfield`` needs of it; empty
     with ``reach`` 0), all together (``nearfield.near_fields``), their ``form_factors`` None
-    where ``small`` makes the row. Returns the rows made and the near fields, by node."""
-    views = [(node, view, limit, weight) for node, made in small.items() for view, limit, weight in made]
-    rows: dict[int, torch.Tensor] = {}
-    for start in range(0, len(views), ROW_BATCH):
-        part = views[start:start + ROW_BATCH]
-        made = small_receiver_rows([view for _, view, _, _ in part], mesh.corners, mesh.areas,
-                                   [limit for _, _, limit, _ in part])
-        for (node, _, _, weight), row in zip(part, made):
-            if len(small[node]) == 1:
+    where ``small`` makes the row. ``result`` gives the rows made and the near fields, by node.
+
+    It is made in parts, which touch no state of the solver: the rows ``ROW_BATCH`` views a part
+    (``small_receiver_rows``), then the near fields. The ``worker`` thread makes a group's parts
+    in order; a thread that would wait for it makes a part no thread has begun (``make_part``),
+    so at a sweep's end, with nothing left to draw, both threads work on its last groups (made
+    whole by one thread or the other, the lamps' group of a sweep's first shots, 0.2-0.3 s on
+    office, left a core idle). Each part is a function of the mesh and its views alone: the
+    same numbers whichever thread makes which."""
+
+    def __init__(self, worker: ThreadPoolExecutor, mesh: Mesh, small: dict[int, list[tuple[HemicubeView, float, float]]],
+                 shooters: dict[int, NearShooter], reach: float, totals: str):
+        views = [(node, view, limit, weight) for node, made in small.items() for view, limit, weight in made]
+        self._batches = [views[start:start + ROW_BATCH] for start in range(0, len(views), ROW_BATCH)]
+        self._rows: list[list[torch.Tensor] | None] = [None] * len(self._batches)
+        self._mesh, self._small, self._shooters, self._reach, self._totals = mesh, small, shooters, reach, totals
+        self._lock = threading.Condition()
+        self._begun = 0  # parts begun: the row batches in order, then the near fields
+        self._finished = 0  # row batches finished
+        self._made: tuple[dict[int, torch.Tensor], dict[int, NearReceivers]] | None = None
+        self._error: BaseException | None = None
+        worker.submit(self._make_all)
+
+    def done(self) -> bool:
+        return self._made is not None or self._error is not None
+
+    def _take(self) -> int | None:
+        """The next part no thread has begun, None where there is none (the near fields wait
+        for every row: the thread that finishes the last takes them)."""
+        with self._lock:
+            batches = len(self._batches)
+            if self._error is not None or self._begun > batches or (
+                    self._begun == batches and self._finished < batches):
+                return None
+            self._begun += 1
+            return self._begun - 1
+
+    def make_part(self) -> bool:
+        """Make on this thread a part of the group no thread has begun; whether there was one."""
+        part = self._take()
+        if part is None:
+            return False
+        try:
+            if part < len(self._batches):
+                batch = self._batches[part]
+                rows = small_receiver_rows([view for _, view, _, _ in batch], self._mesh.corners, self._mesh.areas,
+                                           [limit for _, _, limit, _ in batch])
+                with self._lock:
+                    self._rows[part] = rows
+                    self._finished += 1
+            else:
+                made = self._near_fields()
+                with self._lock:
+                    self._made = made
+                    self._lock.notify_all()
+        except BaseException as error:  # handed to the thread that takes the group in (``result``)
+            with self._lock:
+                self._error = error
+                self._lock.notify_all()
+        return True
+
+    def _make_all(self) -> None:
+        while self.make_part():
+            pass
+
+    def _near_fields(self) -> tuple[dict[int, torch.Tensor], dict[int, NearReceivers]]:
+        """The rows by node, from their batches, and the near fields made with them."""
+        rows: dict[int, torch.Tensor] = {}
+        views = [(node, weight) for batch in self._batches for node, _, _, weight in batch]
+        for (node, weight), row in zip(views, (row for made in self._rows for row in made)):
+            if len(self._small[node]) == 1:
                 rows[node] = row
             else:  # the eyes' rows summed in their order, as ``ProgressiveSolver.node_row`` sums them
                 rows.setdefault(node, torch.zeros_like(row)).add_(weight * row)
-    if not shooters:
-        return rows, {}
-    made = [replace(s, form_factors=rows[node]) if s.form_factors is None else s for node, s in shooters.items()]
-    return rows, dict(zip(shooters, near_fields(mesh, made, reach, totals)))
-
-
-class GroupLight:
-    """``group_light`` of one sweep group, made on the ``worker`` thread, or on the thread that
-    waits for it where the worker has not begun it (``make_here``): the same numbers either way."""
-
-    def __init__(self, worker: ThreadPoolExecutor, *args):
-        self._args = args
-        self._future = worker.submit(group_light, *args)
-        self._made = None
-
-    def done(self) -> bool:
-        return self._made is not None or self._future.done()
-
-    def make_here(self) -> bool:
-        """Make it on this thread if the worker has not begun it; whether it did."""
-        if self._made is not None or not self._future.cancel():
-            return False
-        self._made = group_light(*self._args)
-        return True
+        self._rows = []
+        if not self._shooters:
+            return rows, {}
+        made = [replace(s, form_factors=rows[node]) if s.form_factors is None else s
+                for node, s in self._shooters.items()]
+        return rows, dict(zip(self._shooters, near_fields(self._mesh, made, self._reach, self._totals)))
 
     def result(self) -> tuple[dict[int, torch.Tensor], dict[int, NearReceivers]]:
-        """``group_light``'s result, waiting for the worker if it is making it."""
-        return self._made if self._made is not None else self._future.result()
+        """The rows made and the near fields, by node, waiting for the thread making the last part."""
+        with self._lock:
+            while not self.done():
+                self._lock.wait()
+            if self._error is not None:
+                raise self._error
+            return self._made
 
 
-def make_newest_here(groups: Sequence[GroupLight]) -> bool:
-    """Make on this thread the newest of ``groups`` (oldest first, sent to one worker, which
-    takes them in that order) that the worker has not begun; whether there was one.
+def make_a_part(groups: Sequence[GroupLight]) -> bool:
+    """Make on this thread a part that no thread has begun of the oldest of ``groups`` (oldest
+    first, sent to one worker, which takes them in that order) that has one; whether there was one.
 
-    A thread that must wait for the oldest does this instead while it can: the worker and it
-    then work from both ends. At the end of a sweep, when nothing is left to draw, a worker
-    alone on the groups sent last left a core idle: floating's refined solve (3,416 elements,
-    2 cores) drew its reflectors in 0.70 s and waited 0.85 s more for their light. Measured
-    (the study's runs from x2 to 3,416 elements, two interleaved runs each): floating 3.82 /
-    3.98 s -> 3.63 / 3.60 s, the Cornell box 3.47 / 3.53 -> 3.32 / 3.33 s, office 5.81 / 5.77
-    -> 5.69 / 5.65 s, the same numbers."""
-    for group in reversed(groups):
-        if group.done():
-            continue  # made here before
-        return group.make_here()
-    return False
+    A thread that must wait for the oldest does this instead while it can. At the end of a
+    sweep, when nothing is left to draw, a worker alone on the groups sent last left a core
+    idle: floating's refined solve (3,416 elements, 2 cores) drew its reflectors in 0.70 s and
+    waited 0.85 s more for their light. Measured (the study's runs from x2 to 3,416 elements,
+    two interleaved runs each), making whole groups, the newest first: floating 3.82 / 3.98 s
+    -> 3.63 / 3.60 s, the Cornell box 3.47 / 3.53 -> 3.32 / 3.33 s, office 5.81 / 5.77 -> 5.69 /
+    5.65 s, the same numbers."""
+    return any(group.make_part() for group in groups)
