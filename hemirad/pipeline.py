@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from hemirad import checkpoint as checkpoints
-from hemirad.adaptive.answer import (Display, RoundReport, element_errors, estimated_relative_error, ranking_unshot,
+from hemirad.adaptive.answer import (Display, RoundReport, element_errors, estimated_relative_error, ranking_solve,
                                      refine_by_answer)
 from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver, refined_patches
@@ -677,7 +677,10 @@ def _refine_by_answer(scene: Scene, solver: ProgressiveSolver, progress, saver: 
         shot_done = saver.after_shot(progress)
     refine_by_answer(solver, refiner, refine.max_elements, refine.tolerance, refine.rounds,
                      lambda: solver.run(options.max_shots, options.unshot_fraction, shot_done),
-                     rank_on=lambda: solver.run(options.max_shots, ranking_unshot(options.unshot_fraction), shot_done),
+                     # without checkpoints: a run stopped in a ranking solve resumes its round afresh
+                     # (the solve's second step depends on where its first ended)
+                     rank_on=lambda: ranking_solve(solver, options.max_shots, options.unshot_fraction, progress,
+                                                   by_budget=refine.tolerance <= 0),
                      report=None if saver is None else (lambda _: saver.save()), reports=reports,
                      patches_for=lambda: refined_patches(scene, solver), estimate=stopping_estimate,
                      display=shown, importance=ranking_importance(scene))

@@ -37,7 +37,7 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 import hemirad
-from hemirad.adaptive.answer import estimated_relative_error, ranking_unshot, refine_by_answer
+from hemirad.adaptive.answer import estimated_relative_error, ranking_solve, refine_by_answer
 from hemirad.adaptive.refine import Refiner
 from hemirad.assembly import make_solver, refined_patches
 from hemirad.evaluation import metrics, reference
@@ -339,8 +339,9 @@ def _answer_run(name, shipped, comparison, factor: float, rounds: int, budget: i
             log(_converged_line(rows[-1]), flush=True)
 
     # a row after every round scores each round's solve converged, as a run of that many rounds
-    # ends; a run scored once ranks by solves stopped early, as a run does (``RANKING_UNSHOT``)
-    rank_on = None if every_round else (lambda: solver.run(scene.solver.max_shots, ranking_unshot(CONVERGED_UNSHOT)))
+    # ends; a run scored once ranks by solves stopped early, as a run does (``ranking_solve``)
+    rank_on = None if every_round else (lambda: ranking_solve(solver, scene.solver.max_shots, CONVERGED_UNSHOT,
+                                                              by_budget=tolerance <= 0))
     try:
         refine_by_answer(solver, refiner, scene.refine.max_elements, tolerance, rounds, shoot_on, rank_on=rank_on,
                          patches_for=lambda: refined_patches(scene, solver), display=picture_shading,

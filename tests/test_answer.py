@@ -308,6 +308,44 @@ def test_a_solve_that_only_ranks_stops_early_and_the_answer_is_converged():
             assert rounds[0].split > 0 and solver.mesh.num_elements > T
 
 
+def test_a_budgets_ranking_solve_shoots_the_emitters_then_the_patches_holding_most_of_their_light():
+    # sized by an element budget, a ranking solve is two sweeps: every patch holding power (the
+    # glowing face's), then the strongest patches holding RANKING_SHARE of what they left
+    # unshot; its answer is shown with the rest as the ambient term. Sized by a tolerance, it
+    # shoots on to the ranking's unshot fraction and is shown as solved.
+    assert [answer.strongest_holding(torch.tensor(p), share) for p, share in
+            [([1.0, 5.0, 0.0, 3.0, 1.0], 0.7), ([1.0, 5.0, 0.0, 3.0, 1.0], 1.0), ([5.0, 5.0], 0.5)]] == [2, 4, 1]
+    solver, T, E = swept_box(1 << 30)
+    try:
+        emitting = int((solver.patches.magnitudes(E * solver.areas[:, None]) > 0).sum())
+        shots = []
+        shown = answer.ranking_solve(solver, 10_000, 1e-3, lambda report: shots.append(report.shots))
+        power = solver.patches.magnitudes(solver.state.unshot * solver.areas[:, None])
+        after_emitters = shots[0]
+        assert after_emitters == emitting and solver.sweep_count == 2
+        assert 0 < shots[1] - after_emitters < solver.patches.tree.num_patches - emitting
+        assert solver.unshot_fraction > 1e-2  # stopped sooner than the ranking's unshot fraction
+        assert power.count_nonzero() > 0
+        ambient = (shown - solver.state.radiosity) / solver.reflectance  # one (3,) term for every element
+        assert torch.allclose(ambient, ambient[:1].expand_as(ambient)) and bool((ambient > 0).all())
+        # the light still unshot, spread as the ambient term, is about what the solve to come adds
+        raw = solver.state.radiosity.clone()
+        solver.run(10_000, 1e-4)
+
+        def off(radiosity):
+            return float(((radiosity - solver.state.radiosity) * solver.areas[:, None]).sum().abs()
+                         / (solver.state.radiosity * solver.areas[:, None]).sum())
+        assert off(shown) < 0.01 and off(raw) > 0.1  # measured: 0.1% and 16%
+    finally:
+        solver.close()
+    solver, T, E = swept_box(1 << 30)
+    try:
+        assert answer.ranking_solve(solver, 10_000, 1e-3, by_budget=False) is None
+        assert 1e-3 < solver.unshot_fraction <= answer.ranking_unshot(1e-3)
+    finally:
+        solver.close()
+
+
 def test_refinement_stops_where_a_further_round_would_outgrow_the_memory():
     # the closed box's first solve keeps more light than a round of MIN_MEMORY_GROWTH could
     # keep within the budget: no round is made, and the run says why

@@ -44,6 +44,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 28: where an element budget sizes the rounds, a round's solve that a split follows shoots
+#: the emitters and then the patches holding most of their light, once (``answer.ranking_solve``);
 #: 27: a round's solve that refinement judged on the answer follows with a split stops at
 #: ten times the unshot fraction (``answer.RANKING_UNSHOT``);
 #: 26: refinement judged on the answer ranks the elements by their error over the three
@@ -76,7 +78,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 27
+ARITHMETIC = 28
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
