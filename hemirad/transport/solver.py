@@ -7,6 +7,7 @@ receiver j the radiosity  rho_j dB_s F_sj A_s / A_j  (docs/DESIGN.md §1).
 from __future__ import annotations
 
 import collections
+import contextlib
 import os
 import sys
 import threading
@@ -45,7 +46,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
 #: 28: where an element budget sizes the rounds, a round's solve that a split follows shoots
-#: the emitters and then the patches holding most of their light, once (``answer.ranking_solve``);
+#: the emitters, then the patches holding most of their light, once, then bounces the light
+#: among the patches drawn (``answer.ranking_solve``);
 #: 27: a round's solve that refinement judged on the answer follows with a split stops at
 #: ten times the unshot fraction (``answer.RANKING_UNSHOT``);
 #: 26: refinement judged on the answer ranks the elements by their error over the three
@@ -496,18 +498,26 @@ class ProgressiveSolver:
         state.shots += 1
         return patch
 
-    def _sweep(self, limit: int | None = None) -> int | None:
+    def _sweep(self, limit: int | None = None, drawn_only: bool = False) -> int | None:
         """Every patch holding unshot power shoots it, all at once (``sweeps``); with ``limit``,
-        only that many, the strongest. Returns the strongest, None when nothing is left."""
+        only that many, the strongest; ``drawn_only``: only those whose groups' light is kept.
+        Returns the strongest, None when nothing is left."""
         patches, state, tree = self.patches, self.state, self.patches.tree
         with self.profiler.phase("update"):
             power = state.unshot * self.areas[:, None]  # (T, 3)
             magnitude = patches.magnitudes(power)
+            if drawn_only:
+                groups = torch.tensor(sorted(self._transport.groups), dtype=torch.int64, device=self.device)
+                drawn = torch.isin(torch.arange(tree.num_patches, device=self.device) // NEAR_BATCH, groups)
+                magnitude = magnitude.masked_fill(~drawn, 0.0)
             shooting = flatnonzero(magnitude > 0)
             if len(shooting) == 0:
                 return None
             held = None  # (T,) bool the elements of patches that do not shoot this time
-            if limit is not None and len(shooting) > limit:
+            if drawn_only:
+                held = (~drawn).index_select(0, patches.patch)
+                power = power.masked_fill(held[:, None], 0.0)
+            elif limit is not None and len(shooting) > limit:
                 strongest = torch.argsort(magnitude.index_select(0, shooting), descending=True, stable=True)
                 shooting = torch.sort(shooting.index_select(0, strongest[:limit])).values
                 held = torch.ones(tree.num_patches, dtype=torch.bool, device=self.device).index_fill_(
@@ -826,7 +836,7 @@ class ProgressiveSolver:
             progress: Callable[[ShotReport], None] | None = None) -> SolverState:
         start = time.perf_counter()
         keep_freed_memory()
-        with torch_threads(1 if GLContext.is_software() else torch.get_num_threads()), deterministic(self.device):
+        with self._solving():
             while self.state.shots < max_shots and self.unshot_fraction > unshot_fraction:
                 shooter = self.shoot(limit=max_shots - self.state.shots)
                 if shooter is None:
@@ -835,6 +845,22 @@ class ProgressiveSolver:
                     progress(ShotReport(self.state.shots, shooter, self.mesh.num_elements,
                                         self.unshot_fraction, time.perf_counter() - start))
         return self.state
+
+    @contextlib.contextmanager
+    def _solving(self) -> Iterator[None]:
+        """Torch on one thread beside llvmpipe's (on a GPU's GL, on all), deterministic."""
+        with torch_threads(1 if GLContext.is_software() else torch.get_num_threads()), deterministic(self.device):
+            yield
+
+    def sweep_drawn(self) -> bool:
+        """One sweep of the patches whose light the sweeps keep (those drawn before), the
+        others' unshot power held: a bounce among them costs two sparse products and draws no
+        hemicube. Whether any shot (none where patches do not sweep, or nothing is kept)."""
+        if not self.sweeps or self._transport is None or self.active_refiner is not None:
+            return False
+        keep_freed_memory()
+        with self._solving():
+            return self._sweep(drawn_only=True) is not None
 
     def timings(self) -> dict[str, float]:
         """Seconds per phase so far (``PHASES``)."""
