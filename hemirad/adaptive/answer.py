@@ -399,7 +399,7 @@ class RoundReport:
     split: int
     estimated_error: float
     shots: int
-    kept_bytes: int = 0  # the light the round's solve kept for its sweeps (``ProgressiveSolver.kept_light_bytes``)
+    kept_bytes: int = 0  # the light the round's solve kept for its sweeps, all patches drawn (``ProgressiveSolver.whole_kept_light_bytes``)
 
 
 def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elements: int, tolerance: float,
@@ -456,7 +456,8 @@ def refine_by_answer(solver: "ProgressiveSolver", refiner: "Refiner", max_elemen
             weights = None if importance is None else importance(mesh)
         estimated = (estimated_relative_error(mesh, shown, display, errors, solver.emission, weights)
                      if estimate is None else estimate())
-        reports.append(RoundReport(index, mesh.num_elements, 0, estimated, solver.state.shots, solver.kept_light_bytes))
+        reports.append(RoundReport(index, mesh.num_elements, 0, estimated, solver.state.shots,
+                                   solver.whole_kept_light_bytes))
         if last or estimated <= tolerance:
             break
         fits = memory_growth(reports[-1].kept_bytes, solver.cache_bytes)

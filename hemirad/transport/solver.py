@@ -45,6 +45,8 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: hemicubes, form factors, gradients, criteria, splitting, this solver), that alters any
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
+#: 29: a round's growth is held to its ranking solve's kept light scaled to every patch
+#: (``whole_kept_light_bytes``);
 #: 28: where an element budget sizes the rounds, a round's solve that a split follows shoots
 #: the emitters, then the patches holding most of their light, once, then bounces the light
 #: among the patches drawn (``answer.ranking_solve``);
@@ -80,7 +82,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: rounds grow the mesh up to 2.5 times; 10: rounds to an element budget by equal ratios;
 #: 9: refining by the answer, auto patches capped and rounds two levels deep; 8: near fields
 #: made many shooters at once (rounding).
-ARITHMETIC = 28
+ARITHMETIC = 29
 
 # Memory for kept form-factor rows by default: a row costs 12 bytes per element it reaches.
 DEFAULT_CACHE_BYTES = 256 << 20
@@ -303,6 +305,19 @@ class ProgressiveSolver:
         """What the light kept for sweeps holds (``sweep.SweepTransport.nbytes``); where it
         outgrew ``cache_bytes``, what it held then; 0 where none was kept."""
         return self._transport.nbytes if self._transport is not None else self._outgrown_bytes
+
+    @property
+    def whole_kept_light_bytes(self) -> int:
+        """``kept_light_bytes`` as if every patch had been drawn: scaled by all the patches
+        over those drawn, where a solve stopped before drawing them all (``answer.ranking_solve``).
+        The patches it leaves hold little light and see less, so this errs high: on the bundled
+        scenes' first solves 0.98-1.92x what drawing them all kept."""
+        transport = self._transport
+        if transport is None or not transport.groups:
+            return self.kept_light_bytes
+        patches = self.patches.tree.num_patches
+        drawn = sum(min(NEAR_BATCH, patches - group * NEAR_BATCH) for group in transport.groups)
+        return int(self.kept_light_bytes * patches / drawn)
 
     @property
     def hemicubes_rendered(self) -> int:
@@ -600,7 +615,7 @@ class ProgressiveSolver:
                 state.unshot.zero_()
             else:
                 state.unshot.masked_fill_(~held[:, None], 0.0)
-            self._receive_incident(transport.incident(leaf_power, self._worker), leaf_power.sum(0))
+            self._receive_incident(transport.incident(leaf_power), leaf_power.sum(0))
         state.shots += len(shooting)
         self.sweep_count += 1
         return int(torch.argmax(magnitude))

@@ -147,40 +147,30 @@ class SweepTransport:
         self.nbytes += ENTRY_BYTES * (len(far_index) + weights.numel())
         self._matrices = None
 
-    def _merge(self, worker: ThreadPoolExecutor | None) -> None:
-        """Merge the nodes added since into the matrices, the far one on the ``worker`` where
-        there is one while this thread merges the near one (a sweep's end, nothing else to do)."""
+    def _merge(self) -> None:
+        """Merge the nodes added since into the matrices."""
         nodes = sorted(self._pending)
         lights = [self._pending.pop(n) for n in nodes]
-        far = worker.submit(self._merge_far, nodes, lights) if worker is not None else None
-        if far is None:
-            self._merge_far(nodes, lights)
-        near_columns = self._near.shape[1]
-        with_near = [light for light in lights if light.near_rows.numel()]
-        del lights  # the pending light, in the keys and values from here
-        if with_near:
-            near_key = torch.cat([light.near_rows.repeat(len(light.near_weights)) * near_columns
-                                  + (light.lo + torch.arange(len(light.near_weights), device=self.device)
-                                     ).repeat_interleave(len(light.near_rows)) for light in with_near])
-            near_values = torch.cat([light.near_weights.reshape(-1) for light in with_near])
-            del with_near
-            self._near.merge(near_key, near_values)
-        if far is not None:
-            far.result()
-
-    def _merge_far(self, nodes: list[int], lights: list[_NodeLight]) -> None:
         far_columns = self._far.shape[1]
         far_key = torch.cat([light.far_index.long() * far_columns + node for node, light in zip(nodes, lights)])
         far_values = torch.cat([light.far_values for light in lights])
-        del lights
+        near_columns = self._near.shape[1]
+        lights = [light for light in lights if light.near_rows.numel()]
+        near_key = torch.cat([light.near_rows.repeat(len(light.near_weights)) * near_columns
+                              + (light.lo + torch.arange(len(light.near_weights), device=self.device)
+                                 ).repeat_interleave(len(light.near_rows)) for light in lights]) if lights else None
+        near_values = torch.cat([light.near_weights.reshape(-1) for light in lights]) if lights else None
+        del lights  # the pending light, now in the keys and values
         self._far.merge(far_key, far_values)
+        del far_key, far_values
+        if near_key is not None:
+            self._near.merge(near_key, near_values)
 
-    def incident(self, leaf_power: torch.Tensor, worker: ThreadPoolExecutor | None = None) -> torch.Tensor:
+    def incident(self, leaf_power: torch.Tensor) -> torch.Tensor:
         """(T, 3) the power reaching every receiver's front when every leaf shoots its (T0, 3)
-        ``leaf_power`` from its node; every leaf with power must have a node; a ``worker``
-        thread merges the far matrix (``_merge``)."""
+        ``leaf_power`` from its node; every leaf with power must have a node."""
         if self._matrices is None:
-            self._merge(worker)
+            self._merge()
             self._matrices = (self._far.matrix(), self._near.matrix())
         far, near = self._matrices
         node = self.node_of_leaf
@@ -253,8 +243,8 @@ class GroupLight:
                     self._finished += 1
             else:
                 made = self._near_fields()
-                with self._lock:
-                    self._made = made
+                with self._lock:  # the views are let go now, not when the worker's queue lets go of the group
+                    self._batches, self._small, self._shooters, self._made = [], {}, {}, made
                     self._lock.notify_all()
         except BaseException as error:  # handed to the thread that takes the group in (``result``)
             with self._lock:
