@@ -347,6 +347,21 @@ def test_a_budgets_ranking_solve_shoots_the_emitters_then_the_patches_holding_mo
         solver.close()
 
 
+def test_a_ranking_round_stopped_sooner_reports_the_interpolation_estimate():
+    # the estimate given (the pipeline's, by final gathers) would measure how far a budget's
+    # ranking answer is from converged: that round reports the interpolation estimate, the
+    # last round, converged, the estimate given
+    solver, T, E = swept_box(1 << 30)
+    refiner = Refiner(RefineOptions(pattern="pattern2", criterion="answer"), E)
+    try:
+        rounds = refine_by_answer(solver, refiner, 3 * T, 0.0, 1, lambda: solver.run(10_000, 1e-3),
+                                  rank_on=lambda: answer.ranking_solve(solver, 10_000, 1e-3), display=averaged,
+                                  patches_for=lambda: regrouped_patches(solver), estimate=lambda: 123.0)
+    finally:
+        solver.close()
+    assert rounds[0].split > 0 and 0 < rounds[0].estimated_error < 1 and rounds[1].estimated_error == 123.0
+
+
 def test_refinement_stops_where_a_further_round_would_outgrow_the_memory():
     # the closed box's first solve keeps more light than a round of MIN_MEMORY_GROWTH could
     # keep within the budget: no round is made, and the run says why

@@ -46,7 +46,7 @@ PHASES = ("raster", "readback", "form_factors", "gradient", "refine", "update")
 #: number a solve gives: a mesh, a radiosity, a split decision (``scripts/fingerprint.py``
 #: shows it). Checkpoints record it, and one made under another arithmetic is not resumed.
 #: 29: a round's growth is held to its ranking solve's kept light scaled to every patch
-#: (``whole_kept_light_bytes``);
+#: (``whole_kept_light_bytes``), and a budget's ranking round reports its interpolation estimate;
 #: 28: where an element budget sizes the rounds, a round's solve that a split follows shoots
 #: the emitters, then the patches holding most of their light, once, then bounces the light
 #: among the patches drawn (``answer.ranking_solve``);
