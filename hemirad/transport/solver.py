@@ -312,12 +312,15 @@ class ProgressiveSolver:
         over those drawn, where a solve stopped before drawing them all (``answer.ranking_solve``).
         The patches it leaves hold little light and see less, so this errs high: on the bundled
         scenes' first solves 0.98-1.92x what drawing them all kept."""
-        transport = self._transport
-        if transport is None or not transport.groups:
+        if self._transport is None or not self._transport.groups:
             return self.kept_light_bytes
-        patches = self.patches.tree.num_patches
-        drawn = sum(min(NEAR_BATCH, patches - group * NEAR_BATCH) for group in transport.groups)
-        return int(self.kept_light_bytes * patches / drawn)
+        drawn = self._drawn_patches()
+        return int(self.kept_light_bytes * len(drawn) / int(drawn.sum()))
+
+    def _drawn_patches(self) -> torch.Tensor:
+        """(P,) bool the patches whose groups' light the sweeps keep (drawn before)."""
+        groups = torch.tensor(sorted(self._transport.groups), dtype=torch.int64, device=self.device)
+        return torch.isin(torch.arange(self.patches.tree.num_patches, device=self.device) // NEAR_BATCH, groups)
 
     @property
     def hemicubes_rendered(self) -> int:
@@ -522,8 +525,7 @@ class ProgressiveSolver:
             power = state.unshot * self.areas[:, None]  # (T, 3)
             magnitude = patches.magnitudes(power)
             if drawn_only:
-                groups = torch.tensor(sorted(self._transport.groups), dtype=torch.int64, device=self.device)
-                drawn = torch.isin(torch.arange(tree.num_patches, device=self.device) // NEAR_BATCH, groups)
+                drawn = self._drawn_patches()
                 magnitude = magnitude.masked_fill(~drawn, 0.0)
             shooting = flatnonzero(magnitude > 0)
             if len(shooting) == 0:
